@@ -1,0 +1,136 @@
+"""Bench configuration: which device sits on which address.
+
+The same file drives real hardware and the simulated bench; only addresses differ.  Loaded from
+JSON (``BenchConfig.load``).  Unknown keys are refused so a typo never silently falls back to a
+default.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from bench.errors import DataFormatError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ChamberConfig(_Strict):
+    transport: Literal["modbus_tcp", "modbus_rtu"] = "modbus_rtu"
+    # modbus_tcp: "host:port"; modbus_rtu: a serial device ("/dev/ttyUSB0") or pyserial URL
+    # ("socket://127.0.0.1:5021" for RTU over TCP).
+    address: str = "/dev/ttyUSB0"
+    unit_id: int = Field(1, ge=0, le=247)
+    baudrate: int = 9600
+    timeout_s: float = Field(1.0, gt=0)
+    retries: int = Field(2, ge=0)
+    inter_frame_delay_s: float = Field(0.03, ge=0)   # Watlow recommends ~30 ms between transactions
+    ramp_mode: Literal["profile", "host"] = "profile"
+    profile_number: int = Field(1, ge=1, le=40)
+    max_ramp_c_per_min: float = Field(5.0, gt=0)
+    setpoint_min_c: float = -70.0
+    setpoint_max_c: float = 180.0
+
+
+class TurntableGeometry(_Strict):
+    """Two-axis table carrying the chamber.
+
+    ``outer_axis`` / ``inner_axis`` are unit vectors in the level frame (E, N, U) when both angles
+    are zero, for the outer axis, and in the outer-gimbal frame for the inner axis.
+    ``mounting`` maps gyro body axes to the inner-gimbal frame at zero angles: three letters as in
+    orientation codes but relative to the inner gimbal at rest (default: body x=E, y=N, z=U at 0,0).
+    """
+
+    outer_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)   # vertical azimuth axis
+    inner_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)   # horizontal tilt axis, along East at rest
+    mounting: str = "ENU"
+    outer_axis_number: int = 1
+    inner_axis_number: int = 2
+
+
+class TurntableConfig(_Strict):
+    url: str = "/dev/ttyS0"                     # pyserial URL or device; "socket://host:9878" for TCP
+    baudrate: int = 9600
+    framing: Literal["line", "acutrol_header"] = "line"
+    timeout_s: float = Field(2.0, gt=0)
+    axes: int = 2
+    rate_limit_dps: float = 100.0
+    acceleration_dps2: float = 50.0
+    position_tolerance_deg: float = 0.01
+    geometry: TurntableGeometry = TurntableGeometry()
+
+
+class GyroConfig(_Strict):
+    url: str = "/dev/ttyUSB1"
+    baudrate: int = 921600
+    frame: Literal["kvh_a", "hrg"] = "kvh_a"
+    data_rate_hz: float = Field(1000.0, gt=0, le=5000)
+    output_units: Literal["deg/s", "rad/s"] = "deg/s"
+    reconnect_s: float = Field(0.5, gt=0)       # wall seconds between reconnect attempts
+    channels: tuple[str, ...] = ("x", "y", "z")
+
+
+class ProbeConfig(_Strict):
+    w1_root: str = "/sys/bus/w1/devices"
+    # position name -> 12-hex-digit serial ("28-" prefix optional)
+    probes: dict[str, str] = Field(default_factory=dict)
+    resolution_bits: int = Field(12, ge=9, le=12)
+
+
+class PsuConfig(_Strict):
+    url: str = "/dev/ttyUSB2"
+    baudrate: int = 9600
+    timeout_s: float = Field(1.0, gt=0)
+    voltage_v: float = Field(28.0, ge=0)
+    current_limit_a: float = Field(1.5, ge=0)
+
+
+class SafeStateConfig(_Strict):
+    chamber: Literal["setpoint", "hold"] = "setpoint"
+    chamber_setpoint_c: float = 25.0
+    gyro_power: Literal["off", "on", "keep"] = "off"
+    park_outer_deg: float = 0.0
+    park_inner_deg: float = 0.0
+    timeout_s: float = Field(30.0, gt=0)
+
+
+class GyroLimits(_Strict):
+    min_c: float = -45.0
+    max_c: float = 70.0
+
+
+class BenchConfig(_Strict):
+    name: str = "bench1"
+    latitude_deg: float = Field(45.75, ge=-90, le=90)
+    chamber: ChamberConfig = ChamberConfig()
+    turntable: TurntableConfig = TurntableConfig()
+    gyro: GyroConfig = GyroConfig()
+    probes: ProbeConfig = ProbeConfig()
+    psu: PsuConfig = PsuConfig()
+    safe_state: SafeStateConfig = SafeStateConfig()
+    gyro_limits: GyroLimits = GyroLimits()
+
+    @classmethod
+    def load(cls, path: str | Path) -> "BenchConfig":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise DataFormatError("bench config file not found", source=str(path)) from None
+        except json.JSONDecodeError as exc:
+            raise DataFormatError(f"not valid JSON: {exc.msg}", line=exc.lineno, source=str(path)) from None
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            loc = ".".join(str(p) for p in first["loc"])
+            raise DataFormatError(f"{first['msg']}", column=loc, source=str(path)) from None
+
+    def dump(self, path: str | Path) -> None:
+        tmp = Path(str(path) + ".tmp")
+        tmp.write_text(self.model_dump_json(indent=2))
+        tmp.replace(path)

@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Installs everything the product and its tests need on a fresh Debian machine with Python 3.11:
+# Debian tools used by the tests (mbpoll, socat) and a virtual environment in .venv with the package.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need_apt=()
+command -v mbpoll >/dev/null 2>&1 || need_apt+=(mbpoll)
+command -v socat  >/dev/null 2>&1 || need_apt+=(socat)
+if [ ${#need_apt[@]} -gt 0 ]; then
+  if [ "$(id -u)" = "0" ]; then SUDO=""; else SUDO="sudo"; fi
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
+fi
+
+PY=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>/dev/null || true
+.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+.venv/bin/python -c "import bench, pymodbus, sqlalchemy, numpy" 
