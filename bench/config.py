@@ -46,7 +46,9 @@ class TurntableGeometry(_Strict):
     """
 
     outer_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)   # vertical azimuth axis
-    inner_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)   # horizontal tilt axis, along East at rest
+    # horizontal tilt axis, along North at rest: with the gyro mounted ENU at (0, 0) this reaches all
+    # eight positions of S000 (their body y axis is always horizontal, so y must sit on the inner axis)
+    inner_axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
     mounting: str = "ENU"
     outer_axis_number: int = 1
     inner_axis_number: int = 2

@@ -1,0 +1,244 @@
+"""Gyro serial link: reads KVH Format A / HRG frames off a serial line in a background thread.
+
+Transport is pyserial's ``serial_for_url`` (reference section 5.2): a device path
+(``/dev/ttyUSB1``, a pty ``/dev/pts/N``) or ``socket://host:port`` for the simulator.  Frames
+are decoded by ``bench.devices.kvh.FrameDecoder`` (resync, CRC, sequence and status counting)
+and timestamped with the bench clock when taken off the line: the last frame of each read
+chunk gets ``clock.now()``, earlier frames of the same chunk are back-dated by the nominal
+frame period ``1 / data_rate_hz`` (they left the device one period apart).
+
+The control loop calls ``drain()``, which never blocks.  Frames wait in a bounded but large
+queue (``queue_limit``); if the consumer falls that far behind, the oldest frames are dropped
+and counted in ``queue_overflows``.
+
+Link loss (a read/open exception, EOF on a socket) is recorded: the gap starts at the bench
+time of detection; the thread retries every ``config.reconnect_s`` wall seconds; on success
+``(gap_from, gap_to)`` is appended to ``stats.link_gaps`` and ``stats.reconnects`` is
+incremented.  The decoder is reset (partial bytes and sequence forgotten) so frames lost in
+the gap are not miscounted mod 128.  A line that merely goes silent (an unplugged RS-422
+cable, a pty) raises nothing and is not a link gap; the sequence check reports the lost frames
+if fewer than 128.
+
+ASCII configuration on the same line (KVH ``=CONFIG,1`` / ``=DR,n`` / ``?DR`` / ``=CONFIG,0``):
+``configure_data_rate(hz)`` and ``query_data_rate()`` enter config mode, act, and leave it.
+Reply convention: the device echoes the setting (``CONFIG,1``, ``DR,100``) or ``ERROR,...``
+(see ``bench.sim.gyro``).  The reply bytes also reach the frame decoder, which counts them as
+skipped bytes (they are not frames).
+"""
+from __future__ import annotations
+
+import collections
+import re
+import threading
+import time
+
+import serial
+
+from bench.clock import Clock
+from bench.config import GyroConfig
+from bench.devices.kvh import ALLOWED_DATA_RATES, FrameDecoder
+from bench.errors import DeviceTimeout, LinkDown, ProtocolError
+from bench.interfaces import GyroFrame, LinkStats
+
+_ERROR_REPLY = re.compile(rb"ERROR,([^\r\n]*)\r\n")
+
+
+class GyroSerialLink:
+    """``GyroLink`` over a pyserial URL.  ``start()`` raises ``LinkDown`` if the port cannot be opened."""
+
+    def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float = 0.01,
+                 queue_limit: int = 2_000_000, read_timeout_s: float = 0.01) -> None:
+        self.config = config
+        self.clock = clock
+        self.stats = LinkStats()
+        self.decoder = FrameDecoder(config.frame, temp_scale=temp_scale, stats=self.stats)
+        self.queue_limit = queue_limit
+        self.queue_overflows = 0
+        self.read_timeout_s = read_timeout_s
+        self._rate_hz = float(config.data_rate_hz)
+        self._queue: collections.deque[GyroFrame] = collections.deque()
+        self._queue_lock = threading.Lock()
+        self._port: serial.SerialBase | None = None
+        self._port_lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._reply_buf = bytearray()
+        self._reply_lock = threading.Lock()
+        self._capturing_replies = False
+        self.last_error: str | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        if self._thread is not None:
+            return
+        self._port = self._open()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="gyro-link", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        self._close_port()
+
+    def __enter__(self) -> "GyroSerialLink":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def connected(self) -> bool:
+        return self._port is not None
+
+    @property
+    def data_rate_hz(self) -> float:
+        return self._rate_hz
+
+    def drain(self, max_frames: int | None = None) -> list[GyroFrame]:
+        """All queued frames (or the oldest ``max_frames``), oldest first.  Never blocks."""
+        with self._queue_lock:
+            if max_frames is None or max_frames >= len(self._queue):
+                out = list(self._queue)
+                self._queue.clear()
+            else:
+                popleft = self._queue.popleft
+                out = [popleft() for _ in range(max(0, max_frames))]
+        return out
+
+    def pending(self) -> int:
+        return len(self._queue)
+
+    # ------------------------------------------------------------------ port handling
+    def _open(self) -> serial.SerialBase:
+        try:
+            return serial.serial_for_url(self.config.url, baudrate=self.config.baudrate,
+                                         timeout=self.read_timeout_s, write_timeout=2.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkDown(f"gyro serial link {self.config.url!r}: cannot open: {exc}") from None
+
+    def _close_port(self) -> None:
+        with self._port_lock:
+            port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except (serial.SerialException, OSError):
+                pass
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            port = self._port
+            if port is None:
+                self._reconnect_loop(self.clock.now())
+                continue
+            try:
+                data = port.read(65536)
+            except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                # AttributeError/TypeError: pyserial's socket handler after a concurrent close
+                if self._stop.is_set():
+                    return
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                gap_from = self.clock.now()       # before close: pyserial's socket close sleeps 0.3 s
+                self._close_port()
+                self._reconnect_loop(gap_from)
+                continue
+            if data:
+                self._on_bytes(data)
+
+    def _reconnect_loop(self, gap_from: float) -> None:
+        while not self._stop.wait(self.config.reconnect_s):
+            try:
+                port = self._open()
+            except LinkDown as exc:
+                self.last_error = str(exc)
+                continue
+            with self._port_lock:
+                self._port = port
+            self.decoder.reset()
+            self.stats.link_gaps.append((gap_from, self.clock.now()))
+            self.stats.reconnects += 1
+            return
+
+    def _on_bytes(self, data: bytes) -> None:
+        if self._capturing_replies:
+            with self._reply_lock:
+                self._reply_buf += data
+                if len(self._reply_buf) > 1 << 20:
+                    del self._reply_buf[:-4096]
+        frames = self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz)
+        if not frames:
+            return
+        with self._queue_lock:
+            self._queue.extend(frames)
+            excess = len(self._queue) - self.queue_limit
+            if excess > 0:
+                self.queue_overflows += excess
+                popleft = self._queue.popleft
+                for _ in range(excess):
+                    popleft()
+
+    # ------------------------------------------------------------------ ASCII configuration
+    def _command(self, text: str, expect: re.Pattern[bytes], timeout_s: float) -> re.Match[bytes]:
+        port = self._port
+        if port is None:
+            raise LinkDown(f"gyro serial link {self.config.url!r}: not connected, cannot send {text!r}")
+        with self._reply_lock:
+            self._reply_buf.clear()
+        self._capturing_replies = True
+        try:
+            with self._write_lock:
+                try:
+                    port.write((text + "\r\n").encode("ascii"))
+                except (serial.SerialException, OSError) as exc:
+                    raise LinkDown(f"gyro serial link {self.config.url!r}: write of {text!r} failed: {exc}") from None
+            deadline = time.monotonic() + timeout_s
+            while time.monotonic() < deadline:
+                with self._reply_lock:
+                    buf = bytes(self._reply_buf)
+                match = expect.search(buf)
+                if match:
+                    return match
+                error = _ERROR_REPLY.search(buf)
+                if error:
+                    raise ProtocolError(f"gyro at {self.config.url!r} refused {text!r}: "
+                                        f"ERROR,{error.group(1).decode('ascii', 'replace')}")
+                time.sleep(0.002)
+        finally:
+            self._capturing_replies = False
+        raise DeviceTimeout(f"gyro at {self.config.url!r}: no reply to {text!r} within {timeout_s} s")
+
+    def _in_config_mode(self, action, timeout_s: float):
+        self._command("=CONFIG,1", re.compile(rb"CONFIG,1\r\n"), timeout_s)
+        try:
+            return action()
+        finally:
+            self._command("=CONFIG,0", re.compile(rb"CONFIG,0\r\n"), timeout_s)
+
+    def configure_data_rate(self, hz: int, timeout_s: float = 2.0) -> int:
+        """Set the device data rate (``=DR,hz`` inside ``=CONFIG,1`` ... ``=CONFIG,0``)."""
+        if hz not in ALLOWED_DATA_RATES:
+            raise ValueError(f"gyro data rate {hz} Hz is not one of {ALLOWED_DATA_RATES}")
+        hz = int(hz)
+
+        def set_rate() -> int:
+            self._command(f"=DR,{hz}", re.compile(rb"DR,%d\r\n" % hz), timeout_s)
+            self._rate_hz = float(hz)
+            return hz
+
+        return self._in_config_mode(set_rate, timeout_s)
+
+    def query_data_rate(self, timeout_s: float = 2.0) -> int:
+        """Ask the device for its data rate (``?DR`` inside config mode)."""
+
+        def ask() -> int:
+            match = self._command("?DR", re.compile(rb"DR,(\d+)\r\n"), timeout_s)
+            return int(match.group(1))
+
+        rate = self._in_config_mode(ask, timeout_s)
+        self._rate_hz = float(rate)
+        return rate

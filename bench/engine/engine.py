@@ -1,0 +1,411 @@
+"""The run engine: executes a validated ``Plan`` on a ``Devices`` bundle, persisting through a
+``RunStore`` and timing everything with a ``Clock`` (bench seconds).
+
+Loop (one tick): drain gyro frames, read probes / telemetry when due (``Acquisition``), poll the
+control, update suspension, advance the current step with *active* time (not paused, not
+suspended), checkpoint when due, sleep until the next tick.  The tick is adaptive: ``tick_s`` while
+recording / ramping / waiting for stability / moving, ``max_tick_s`` in plain soaks, shortened to
+land on a step's end; data is drained on every tick.
+
+Control: ``stop`` finishes the current recording step (stops at once in any other step, or when
+paused / suspended), then safe state; ``abort`` goes to safe state now; ``pause``/``resume``.
+
+Suspension: any condition from ``Acquisition.conditions`` suspends the run (the step's clock stops,
+a ramp is held, the recording piece ends); once every condition has been clear for ``settle_s``
+the run resumes.  Total suspension above ``suspension_cap_s`` aborts to safe state.
+
+Checkpoint (``RunStore.save_checkpoint``) after each step and every ``checkpoint_period_s``::
+
+    {"version": 1, "step_index": i, "step_state": {...} | None, "hardware": {...}, "t": bench_s,
+     "suspended_total_s": s, "open_suspension": {"id", "t_from", "reason"} | None,
+     "stop_requested": bool, "started_t": bench_s, "progress": {...}, "finished": status | None}
+
+``resume(run_id)`` records the interruption as a gap, restores the commanded hardware state
+(gyro power, table orientation or rates, chamber set point; a ramp is re-issued from the current
+temperature by the ramp step) and continues the interrupted step with its remaining time.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+from bench.clock import Clock
+from bench.config import BenchConfig
+from bench.engine.config import EngineConfig
+from bench.engine.control import COMMANDS, Control, NoControl
+from bench.engine.devices import Devices
+from bench.engine.executors import EXECUTORS, StepExecutor, StepFailed
+from bench.engine.monitor import Acquisition
+from bench.engine.orientation import solve_angles
+from bench.engine.planning import plan_summary, step_estimates, validate_plan
+from bench.engine.safe import enter_safe_state, move_table_and_wait
+from bench.engine.steps import Fit, Plan, Ramp
+from bench.engine.store import RunStore
+from bench.errors import BenchError, DeviceError
+
+FitHook = Callable[[str, int, Fit, RunStore], dict[str, Any]]
+CHECKPOINT_VERSION = 1
+MIN_SLEEP_S = 1e-3
+
+
+@dataclass
+class HardwareState:
+    """What the engine last commanded (restored on resume)."""
+
+    chamber_setpoint_c: float | None = None
+    chamber_ramp: dict[str, float] | None = None
+    orientation: str | None = None
+    table_angles: list[float] | None = None
+    table_rates: dict[str, float] = field(default_factory=dict)
+    gyro_power: bool | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> "HardwareState":
+        return cls(**data)
+
+
+class RunEnded(Exception):
+    """Internal: the run leaves the step loop with ``status`` for ``reason``."""
+
+    def __init__(self, status: str, reason: str) -> None:
+        super().__init__(reason)
+        self.status = status
+        self.reason = reason
+
+
+class Engine:
+    def __init__(self, devices: Devices, store: RunStore, clock: Clock, config: BenchConfig,
+                 control: Control | None = None, engine_config: EngineConfig | None = None,
+                 fit_hook: FitHook | None = None) -> None:
+        self.devices = devices
+        self.store = store
+        self.clock = clock
+        self.config = config
+        self.control = control or NoControl()
+        self.cfg = engine_config or EngineConfig()
+        self.fit_hook = fit_hook
+        self.run_id = ""
+        self.plan: Plan | None = None
+        self.estimates: list[float] = []
+        self.hw = HardwareState()
+        self.acq: Acquisition
+        self.current: StepExecutor | None = None
+        self.current_index = 0
+        self.powered_since: float | None = None
+        self.paused = False
+        self.stop_requested = False
+        self.suspension: dict[str, Any] | None = None   # {"id", "t_from", "reason", "clear_since"}
+        self.suspended_closed_s = 0.0
+        self.started_t = 0.0
+        self.next_checkpoint = 0.0
+        self.status = "created"
+
+    # ---- public API ---------------------------------------------------------------------------
+    def run(self, run_id: str, plan: Plan) -> str:
+        """Validate ``plan`` (PlanError before any hardware is touched), then execute it.
+        Returns the final run status."""
+        summary = plan_summary(plan, self.config, self.cfg)
+        now = self.clock.now()
+        self._setup(run_id, plan, now)
+        self.store.create_run(run_id, plan.to_json(), summary, now)
+        self.started_t = now
+        self._status("running", now)
+        self.log("info", "run_started", f"run {run_id} started: {plan.name}, {len(plan.steps)} steps, "
+                 f"about {summary['total_bench_h']:.2f} h", total_bench_s=summary["total_bench_s"])
+        return self._guarded(lambda: self._start_hardware(resumed=False), 0, None)
+
+    def resume(self, run_id: str) -> str:
+        """Continue ``run_id`` from its last checkpoint (after a crash or kill -9)."""
+        plan = Plan.from_json(self.store.load_plan(run_id))
+        validate_plan(plan, self.config)
+        cp = self.store.load_checkpoint(run_id)
+        if cp is None:
+            raise BenchError(f"run {run_id}: no checkpoint stored; nothing to resume")
+        if cp.get("version") != CHECKPOINT_VERSION:
+            raise BenchError(f"run {run_id}: checkpoint version {cp.get('version')!r} is not {CHECKPOINT_VERSION}")
+        if cp.get("finished"):
+            raise BenchError(f"run {run_id} already ended ({cp['finished']}); nothing to resume")
+        now = self.clock.now()
+        self._setup(run_id, plan, now)
+        self.hw = HardwareState.from_json(cp["hardware"])
+        self.started_t = float(cp.get("started_t", cp["t"]))
+        self.stop_requested = bool(cp.get("stop_requested", False))
+        self.suspended_closed_s = float(cp.get("suspended_total_s", 0.0))
+        last_t = float(cp["t"])
+        opened = cp.get("open_suspension")
+        if opened:
+            self.store.close_suspension(run_id, opened["id"], last_t, opened["reason"] + " (run interrupted)")
+        last_frame = self.store.last_frame_time(run_id)
+        gap_from = max(last_t, last_frame) if last_frame is not None else last_t
+        self.store.add_gap(run_id, gap_from, now, "engine interrupted")
+        index = int(cp["step_index"])
+        self._status("running", now)
+        self.log("warning", "run_resumed", f"run {run_id} resumed at step {index} after an interruption of "
+                 f"{now - gap_from:.0f} s", gap_from=gap_from, gap_to=now, step_index=index)
+        return self._guarded(lambda: self._start_hardware(resumed=True, index=index), index,
+                             cp.get("step_state"))
+
+    def progress(self, now: float | None = None) -> dict[str, Any]:
+        now = self.clock.now() if now is None else now
+        total = sum(self.estimates)
+        index = self.current_index
+        done = sum(self.estimates[:index])
+        remaining_later = sum(self.estimates[index + 1:])
+        if self.current is not None and index < len(self.estimates):
+            current_remaining = self.current.remaining_s()
+            done += max(0.0, self.estimates[index] - current_remaining)
+        else:
+            current_remaining = 0.0
+        remaining = current_remaining + remaining_later
+        return {
+            "step_index": index,
+            "n_steps": len(self.estimates),
+            "step_kind": self.plan.steps[index].kind if self.plan and index < len(self.plan.steps) else None,
+            "percent": 100.0 * min(1.0, done / total) if total > 0 else (100.0 if index >= len(self.estimates) else 0.0),
+            "elapsed_bench_s": now - self.started_t,
+            "remaining_bench_s": remaining,
+            "eta_bench_t": now + remaining,
+            "status": self.status,
+        }
+
+    # ---- logging / status -------------------------------------------------------------------
+    def log(self, level: str, kind: str, message: str, **data: Any) -> None:
+        self.store.add_event(self.run_id, self.clock.now(), level, kind, message, data or None)
+
+    def _status(self, status: str, now: float, reason: str | None = None) -> None:
+        self.status = status
+        self.store.set_run_status(self.run_id, status, now, reason)
+
+    # ---- setup --------------------------------------------------------------------------------
+    def _setup(self, run_id: str, plan: Plan, now: float) -> None:
+        self.run_id = run_id
+        self.plan = plan
+        self.estimates = step_estimates(plan, self.config, self.cfg)
+        self.next_checkpoint = now + self.cfg.checkpoint_period_s
+        self.acq = Acquisition(self.devices, self.store, run_id, self.config, self.cfg, self.log, now)
+
+    def _start_hardware(self, resumed: bool, index: int = 0) -> None:
+        dev = self.devices
+        dev.gyro.start()
+        dev.chamber.set_power(True)
+        dev.psu.set_voltage(self.config.psu.voltage_v)
+        dev.psu.set_current_limit(self.config.psu.current_limit_a)
+        for axis in (self.config.turntable.geometry.outer_axis_number, self.config.turntable.geometry.inner_axis_number):
+            dev.turntable.interlock_close(axis)
+        self.log("info", "hardware_ready", f"gyro link started, chamber power on, PSU "
+                 f"{self.config.psu.voltage_v:g} V / {self.config.psu.current_limit_a:g} A limit, table interlocks closed")
+        if resumed:
+            self._restore_hardware(index)
+
+    def _restore_hardware(self, index: int) -> None:
+        hw, dev, now = self.hw, self.devices, self.clock.now()
+        assert self.plan is not None
+        if hw.gyro_power is not None:
+            dev.psu.output(hw.gyro_power)
+            self.powered_since = now if hw.gyro_power else None
+            self.log("info", "restore_power", f"gyro power restored {'on' if hw.gyro_power else 'off'}")
+        if hw.orientation is not None:
+            outer, inner = solve_angles(hw.orientation, self.config.turntable.geometry)
+            ok = move_table_and_wait(dev, self.clock, self.config, outer, inner, self.config.safe_state.timeout_s * 10)
+            if not ok:
+                raise StepFailed(f"resume: turntable did not return to {hw.orientation}")
+            self.log("info", "restore_table", f"turntable restored to {hw.orientation}")
+        else:
+            geo = self.config.turntable.geometry
+            for axis, rate in hw.table_rates.items():
+                dev.turntable.rate(geo.outer_axis_number if axis == "outer" else geo.inner_axis_number, rate)
+                self.log("info", "restore_table", f"turntable {axis} axis rate restored to {rate:g} deg/s")
+        in_ramp = index < len(self.plan.steps) and isinstance(self.plan.steps[index], Ramp)
+        if not in_ramp and hw.chamber_setpoint_c is not None:
+            dev.chamber.set_setpoint(hw.chamber_setpoint_c)
+            self.log("info", "restore_chamber", f"chamber set point restored to {hw.chamber_setpoint_c:g} C")
+
+    # ---- the run ------------------------------------------------------------------------------
+    def _guarded(self, prepare: Callable[[], None], start_index: int, step_state: dict[str, Any] | None) -> str:
+        try:
+            prepare()
+            self._steps(start_index, step_state)
+        except RunEnded as end:
+            self._end(end.status, end.reason)
+        except (BenchError, DeviceError) as exc:
+            self._end("failed", f"{type(exc).__name__}: {exc}")
+        except KeyboardInterrupt:
+            self._end("aborted", "interrupted (KeyboardInterrupt)")
+            raise
+        except Exception as exc:
+            self._end("failed", f"internal error {type(exc).__name__}: {exc}")
+            raise
+        return self.status
+
+    def _steps(self, start_index: int, step_state: dict[str, Any] | None) -> None:
+        assert self.plan is not None
+        for index in range(start_index, len(self.plan.steps)):
+            self._run_step(index, step_state if index == start_index else None)
+            if self.stop_requested:
+                raise RunEnded("stopped", "stop requested")
+        self.current = None
+        self.current_index = len(self.plan.steps)
+        self._end("completed", None)
+
+    def _run_step(self, index: int, state: dict[str, Any] | None) -> None:
+        assert self.plan is not None
+        step = self.plan.steps[index]
+        now = self.clock.now()
+        ex = EXECUTORS[step.kind](self, index, step, self.estimates[index], state)
+        self.current, self.current_index = ex, index
+        self.store.set_step_status(self.run_id, index, step.kind, "running", now,
+                                   {"describe": step.describe(), "resumed": state is not None})
+        ex.start(now)
+        last = now
+        while True:
+            now = self.clock.now()
+            dt, last = max(0.0, now - last), now
+            self._service(now)
+            held = self.paused or self.suspension is not None
+            if held and not ex.held:
+                ex.hold(now)
+            elif not held and ex.held:
+                ex.release(now)
+            if not held and ex.update(now, dt):
+                break
+            if self.stop_requested and (not ex.records or held):
+                ex.finish(now, complete=False)
+                self.store.set_step_status(self.run_id, index, step.kind, "stopped", now)
+                raise RunEnded("stopped", "stop requested")
+            if now >= self.next_checkpoint:
+                self._checkpoint(now, index, ex.state(now))
+            self._sleep(now, ex)
+        ex.finish(now, complete=True)
+        status = "failed" if ex.failed_reason else "done"
+        self.store.set_step_status(self.run_id, index, step.kind, status, now,
+                                   {"error": ex.failed_reason} if ex.failed_reason else None)
+        self.current_index = index + 1
+        self.current = None
+        self.acq.flush(now)
+        self._checkpoint(now, index + 1, None)
+
+    def _sleep(self, now: float, ex: StepExecutor) -> None:
+        fine = ex.fine or ex.held
+        wake = now + (self.cfg.tick_s if fine else self.cfg.max_tick_s)
+        deadline = ex.deadline(now)
+        if deadline is not None and not ex.held:
+            wake = min(wake, deadline)
+        wake = min(wake, self.next_checkpoint)
+        self.clock.sleep(max(MIN_SLEEP_S, wake - self.clock.now()))
+
+    # ---- service: data, control, suspension ---------------------------------------------------
+    def _service(self, now: float) -> None:
+        self.acq.tick(now, self.powered_since if self.hw.gyro_power else None)
+        while (command := self.control.poll()) is not None:
+            self._control(command, now)
+        self._supervise(now)
+
+    def _control(self, command: str, now: float) -> None:
+        if command not in COMMANDS:
+            self.log("warning", "control_ignored", f"unknown control request {command!r} ignored")
+            return
+        self.log("info", f"control_{command}", f"operator requested {command}")
+        if command == "abort":
+            raise RunEnded("aborted", "abort requested")
+        if command == "stop":
+            self.stop_requested = True
+        elif command == "pause" and not self.paused:
+            self.paused = True
+            self._status("paused", now)
+        elif command == "resume" and self.paused:
+            self.paused = False
+            self._status("suspended" if self.suspension else "running", now)
+
+    def _supervise(self, now: float) -> None:
+        conditions = self.acq.conditions
+        susp = self.suspension
+        if susp is None:
+            if not conditions:
+                return
+            reason = "; ".join(conditions.values())
+            sid = self.store.open_suspension(self.run_id, now, reason)
+            self.suspension = {"id": sid, "t_from": now, "reason": reason, "clear_since": None}
+            self.log("warning", "suspended", f"run suspended: {reason}")
+            if not self.paused:
+                self._status("suspended", now, reason)
+        elif conditions:
+            for text in conditions.values():
+                if text not in susp["reason"]:
+                    susp["reason"] += "; " + text
+                    self.log("warning", "suspension_reason", f"also: {text}")
+            if susp["clear_since"] is not None:
+                self.log("warning", "suspension_recurred", "condition came back while settling")
+            susp["clear_since"] = None
+        elif susp["clear_since"] is None:
+            susp["clear_since"] = now
+            self.log("info", "conditions_cleared", f"conditions cleared; settling {self.cfg.settle_s:g} s")
+        elif now - susp["clear_since"] >= self.cfg.settle_s:
+            self.store.close_suspension(self.run_id, susp["id"], now, susp["reason"])
+            self.suspended_closed_s += now - susp["t_from"]
+            self.suspension = None
+            self.log("info", "unsuspended", f"run resumed after {now - susp['t_from']:.0f} s suspended")
+            if not self.paused:
+                self._status("running", now)
+            return
+        total = self.suspended_total(now)
+        if total > self.cfg.suspension_cap_s:
+            raise RunEnded("aborted", f"suspended for a total of {total:.0f} s, over the cap of "
+                                      f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension['reason']}")
+
+    def suspended_total(self, now: float) -> float:
+        current = now - self.suspension["t_from"] if self.suspension else 0.0
+        return self.suspended_closed_s + current
+
+    # ---- checkpoint / end ---------------------------------------------------------------------
+    def _checkpoint(self, now: float, index: int, step_state: dict[str, Any] | None,
+                    finished: str | None = None) -> None:
+        self.acq.flush(now)
+        susp = self.suspension
+        self.store.save_checkpoint(self.run_id, {
+            "version": CHECKPOINT_VERSION,
+            "step_index": index,
+            "step_state": step_state,
+            "hardware": self.hw.to_json(),
+            "t": now,
+            "started_t": self.started_t,
+            "suspended_total_s": self.suspended_total(now),
+            "open_suspension": ({"id": susp["id"], "t_from": susp["t_from"], "reason": susp["reason"]}
+                                if susp else None),
+            "stop_requested": self.stop_requested,
+            "progress": self.progress(now),
+            "finished": finished,
+        })
+        self.next_checkpoint = now + self.cfg.checkpoint_period_s
+
+    def _end(self, status: str, reason: str | None) -> None:
+        now = self.clock.now()
+        ex = self.current
+        if ex is not None:
+            ex.finish(now, complete=False)
+            self.store.set_step_status(self.run_id, ex.index, ex.step.kind,
+                                       "stopped" if status == "stopped" else "aborted" if status == "aborted" else "failed",
+                                       now, {"reason": reason})
+            self.current = None
+        if self.suspension is not None:
+            self.store.close_suspension(self.run_id, self.suspension["id"], now, self.suspension["reason"])
+            self.suspended_closed_s += now - self.suspension["t_from"]
+            self.suspension = None
+        try:
+            self.acq.flush(now)
+        except Exception as exc:  # noqa: BLE001 - still reach the safe state
+            self.log("error", "flush_failed", f"could not store the last frames: {exc}")
+        if status != "completed":
+            self.log("warning" if status == "stopped" else "error", f"run_{status}", f"run {status}: {reason}")
+        safe_ok = enter_safe_state(self.devices, self.clock, self.config, self.hw.chamber_ramp is not None, self.log)
+        self.hw.chamber_ramp = None
+        try:
+            self.devices.gyro.stop()
+        except DeviceError as exc:
+            self.log("error", "link_stop_failed", f"gyro link stop failed: {exc}")
+        now = self.clock.now()
+        self._checkpoint(now, self.current_index, None, finished=status)
+        self._status(status, now, reason if safe_ok else f"{reason or status}; safe state incomplete")
+        self.log("info", "run_ended", f"run ended: {status}", safe_state_ok=safe_ok)

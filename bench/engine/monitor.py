@@ -1,0 +1,199 @@
+"""Data acquisition and condition watching, run once per engine tick.
+
+Every tick: drain the gyro link (non-blocking) into a buffer handed to the store in batches, and
+record new link gaps from ``LinkStats.link_gaps``.  When due: read the DS18B20 probes and the
+chamber / turntable / PSU telemetry.  While doing so, keep the set of *conditions* that suspend a
+run (chamber alarm or input error, probe lost, gyro frames stopped, any device link down), each
+with a human-readable reason.  Nothing here commands hardware.
+"""
+from __future__ import annotations
+
+import collections
+from typing import Any, Callable
+
+import numpy as np
+
+from bench.config import BenchConfig
+from bench.engine.config import EngineConfig
+from bench.engine.devices import Devices
+from bench.engine.store import RunStore
+from bench.errors import DeviceError
+from bench.interfaces import ChamberStatus, GyroFrame
+
+LogFn = Callable[..., None]
+HISTORY_S = 3600.0   # probe history kept for stability checks
+
+
+class Acquisition:
+    def __init__(self, devices: Devices, store: RunStore, run_id: str, config: BenchConfig,
+                 engine_config: EngineConfig, log: LogFn, now: float) -> None:
+        self.devices = devices
+        self.store = store
+        self.run_id = run_id
+        self.config = config
+        self.cfg = engine_config
+        self.log = log
+        self.buffer: list[GyroFrame] = []
+        self.frames_total = 0
+        self.last_flush = now
+        self.next_probe = now
+        self.next_telemetry = now
+        self.link_gaps_seen = len(devices.gyro.stats.link_gaps)
+        self.last_frames_t: float | None = None
+        self.status: ChamberStatus | None = None
+        self.status_t: float | None = None
+        self.probe_names: list[str] = list(config.probes.probes)
+        self.probe_hist: dict[str, collections.deque[tuple[float, float]]] = {}
+        self.probe_bad: dict[str, int] = {}
+        self.probe_read_failures = 0
+        self.conditions: dict[str, str] = {}
+        self.outer_axis = config.turntable.geometry.outer_axis_number
+        self.inner_axis = config.turntable.geometry.inner_axis_number
+
+    # ---- conditions -------------------------------------------------------------------------
+    def _set(self, key: str, reason: str | None) -> None:
+        if reason is None:
+            self.conditions.pop(key, None)
+        else:
+            self.conditions[key] = reason
+
+    # ---- per tick -----------------------------------------------------------------------------
+    def tick(self, now: float, powered_since: float | None) -> None:
+        self.drain(now, powered_since)
+        if now >= self.next_probe:
+            self.next_probe = now + self.cfg.probe_period_s
+            self.read_probes(now)
+        if now >= self.next_telemetry:
+            self.next_telemetry = now + self.cfg.telemetry_period_s
+            self.read_telemetry(now)
+        if len(self.buffer) >= self.cfg.frame_batch or now - self.last_flush >= self.cfg.frame_flush_s:
+            self.flush(now)
+
+    def drain(self, now: float, powered_since: float | None) -> None:
+        link = self.devices.gyro
+        try:
+            frames = link.drain()
+        except DeviceError as exc:
+            self._set("gyro_link", f"gyro link down: {exc}")
+            frames = []
+        else:
+            self._set("gyro_link", None)
+        if frames:
+            self.buffer.extend(frames)
+            self.frames_total += len(frames)
+            self.last_frames_t = now
+            while len(self.buffer) >= self.cfg.frame_batch:
+                self._write(self.buffer[:self.cfg.frame_batch])
+                del self.buffer[:self.cfg.frame_batch]
+        gaps = link.stats.link_gaps
+        if len(gaps) > self.link_gaps_seen:
+            for t_from, t_to in gaps[self.link_gaps_seen:]:
+                self.store.add_gap(self.run_id, float(t_from), float(t_to), "gyro link gap")
+            self.link_gaps_seen = len(gaps)
+        self._check_frames(now, powered_since)
+
+    def _check_frames(self, now: float, powered_since: float | None) -> None:
+        if powered_since is None or now - powered_since < self.cfg.frames_grace_s:
+            self._set("gyro_frames", None)
+            return
+        last = max(powered_since, self.last_frames_t) if self.last_frames_t is not None else powered_since
+        silent = now - last
+        self._set("gyro_frames", f"gyro frames stopped: none for {silent:.0f} s with power on"
+                  if silent > self.cfg.frames_timeout_s else None)
+
+    def _write(self, frames: list[GyroFrame]) -> None:
+        if frames:
+            self.store.add_frames(self.run_id, frames)
+
+    def flush(self, now: float) -> None:
+        self._write(self.buffer)
+        self.buffer = []
+        self.last_flush = now
+
+    # ---- probes -------------------------------------------------------------------------------
+    def read_probes(self, now: float) -> None:
+        try:
+            readings = self.devices.probes.read_all()
+        except DeviceError as exc:
+            self.probe_read_failures += 1
+            if self.probe_read_failures >= self.cfg.probe_lost_reads:
+                self._set("probes_link", f"probes unreadable ({self.probe_read_failures} reads): {exc}")
+            return
+        self.probe_read_failures = 0
+        self._set("probes_link", None)
+        self.store.add_probe_readings(self.run_id, now, readings)
+        by_name = {r.name: r for r in readings}
+        if not self.probe_names:
+            self.probe_names = sorted(by_name)
+        for name in self.probe_names:
+            reading = by_name.get(name)
+            if reading is None or reading.celsius is None:
+                self.probe_bad[name] = self.probe_bad.get(name, 0) + 1
+                if self.probe_bad[name] >= self.cfg.probe_lost_reads:
+                    why = "missing from the bus" if reading is None else (reading.fault or "reading rejected")
+                    self._set(f"probe:{name}", f"probe {name} lost: {why}")
+                continue
+            self.probe_bad[name] = 0
+            self._set(f"probe:{name}", None)
+            hist = self.probe_hist.setdefault(name, collections.deque())
+            hist.append((now, float(reading.celsius)))
+            while hist and hist[0][0] < now - HISTORY_S:
+                hist.popleft()
+
+    def latest_probes(self) -> dict[str, float | None]:
+        return {name: (self.probe_hist[name][-1][1] if self.probe_hist.get(name) else None)
+                for name in self.probe_names}
+
+    def probe_rate_c_per_min(self, name: str, now: float, window_s: float) -> float | None:
+        """Least-squares slope of probe ``name`` over the last ``window_s``; None until the window
+        is (90 %) covered."""
+        hist = self.probe_hist.get(name)
+        if not hist or hist[0][0] > now - 0.9 * window_s:
+            return None
+        pts = [(t, c) for t, c in hist if t >= now - window_s]
+        if len(pts) < 3:
+            return None
+        t = np.fromiter((p[0] for p in pts), float)
+        c = np.fromiter((p[1] for p in pts), float)
+        slope = np.polyfit(t - t[0], c, 1)[0]
+        return float(slope * 60.0)
+
+    # ---- telemetry ----------------------------------------------------------------------------
+    def read_chamber(self, now: float) -> ChamberStatus | None:
+        try:
+            status = self.devices.chamber.status()
+        except DeviceError as exc:
+            self._set("chamber_link", f"chamber link down: {exc}")
+            return None
+        self._set("chamber_link", None)
+        self.status, self.status_t = status, now
+        self._set("chamber_alarm", f"chamber alarm {status.alarm}" if status.alarm else None)
+        self._set("chamber_input", f"chamber input error {status.input_error}" if status.input_error else None)
+        return status
+
+    def read_telemetry(self, now: float) -> None:
+        values: dict[str, Any] = {}
+        status = self.read_chamber(now)
+        if status is not None:
+            values.update(chamber_pv_c=status.pv_c, chamber_sp_c=status.setpoint_c,
+                          chamber_ramp_sp_c=status.ramp_setpoint_c, chamber_mode=status.mode,
+                          chamber_alarm=status.alarm, chamber_input_error=status.input_error,
+                          chamber_power=status.power_on)
+        try:
+            for name, axis in (("outer", self.outer_axis), ("inner", self.inner_axis)):
+                state = self.devices.turntable.read(axis)
+                values[f"table_{name}_deg"] = state.position_deg
+                values[f"table_{name}_dps"] = state.rate_dps
+        except DeviceError as exc:
+            self._set("table_link", f"turntable link down: {exc}")
+        else:
+            self._set("table_link", None)
+        try:
+            psu = self.devices.psu
+            values.update(psu_on=psu.output_state(), psu_v=psu.measure_voltage(), psu_a=psu.measure_current())
+        except DeviceError as exc:
+            self._set("psu_link", f"power supply link down: {exc}")
+        else:
+            self._set("psu_link", None)
+        if values:
+            self.store.add_telemetry(self.run_id, now, values)

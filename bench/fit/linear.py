@@ -1,0 +1,191 @@
+"""Least-squares engine and helpers for autocorrelated residuals.
+
+* ``lstsq``: ordinary (optionally weighted) least squares for large designs (10^6 x 40).  Columns are
+  equilibrated (divided by their 2-norm; calibration-notes lesson 2/10: ill-conditioning, not the
+  optimiser, is the usual problem) and the 2-norm condition number of the equilibrated design is
+  reported as ``cond``.  When cond <= 1e6 the fast path solves the equilibrated normal equations by
+  eigen-decomposition and applies one step of iterative refinement on the residual (corrected
+  semi-normal equations; one BLAS pass per step, ~10 significant digits left).  Worse-conditioned
+  designs go through a chunked Householder QR of [X/s, y] (TSQR: R factors of row blocks stacked and
+  reduced again) and an SVD of R with relative cut-off ``rcond`` (rank reported).  Rows with any
+  non-finite value in X or y are left out and get a NaN residual.
+* HAC / decimation helpers (calibration-notes 4.1 and lesson 3: thermal-run residuals are strongly
+  autocorrelated, plain F-tests mislead): ``newey_west_lags`` (floor(4 (n/100)^(2/9)), statsmodels'
+  default), ``ols_hac`` (statsmodels OLS with ``cov_type="HAC"``), ``wald_hac`` (robust joint test that
+  some coefficients are zero), ``decimate_indices`` (one sample per ``every_s`` seconds) and
+  ``bic``.
+
+Public API::
+
+    lstsq(x, y, *, names=None, weights=None, rcond=1e-12, chunk_rows=131072) -> LinearFit
+    bic(rss, n, k) -> float
+    newey_west_lags(n) -> int
+    ols_hac(x, y, maxlags=None) -> statsmodels RegressionResults
+    wald_hac(x, y, columns, maxlags=None) -> (statistic, p_value, df)
+    decimate_indices(time_s, every_s) -> int array
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+
+@dataclass
+class LinearFit:
+    coef: np.ndarray            # in the units of the (unscaled) design
+    names: list[str]
+    residual: np.ndarray        # y - X @ coef, NaN for rows left out
+    used: np.ndarray            # bool, rows used in the fit
+    n: int
+    k: int
+    rank: int
+    cond: float                 # condition number of the column-equilibrated design
+    rss: float
+    rms: float
+    r2: float
+    bic: float
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(self.names, (float(c) for c in self.coef)))
+
+    def stats(self) -> dict[str, float | int]:
+        return {"n": self.n, "k": self.k, "rank": self.rank, "cond": self.cond, "rss": self.rss,
+                "rms_dph": self.rms, "r2": self.r2, "bic": self.bic}
+
+
+def bic(rss: float, n: int, k: int) -> float:
+    """Gaussian BIC up to a constant: n ln(rss/n) + k ln n."""
+    if n <= 0 or rss <= 0:
+        return float("nan")
+    return float(n * np.log(rss / n) + k * np.log(n))
+
+
+def lstsq(x: np.ndarray, y: np.ndarray, *, names: list[str] | None = None, weights: np.ndarray | None = None,
+          rcond: float = 1e-12, chunk_rows: int = 131072) -> LinearFit:
+    """Least squares of y on the columns of x (add your own intercept column)."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if x.ndim != 2 or y.ndim != 1 or x.shape[0] != y.shape[0]:
+        raise ValueError(f"lstsq: shapes x{x.shape} y{y.shape} do not match")
+    n_all, k = x.shape
+    names = list(names) if names is not None else [f"c{j}" for j in range(k)]
+    used = np.isfinite(y)
+    for j in range(k):
+        used &= np.isfinite(x[:, j])
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        used &= np.isfinite(w) & (w > 0)
+        sw = np.sqrt(np.where(used, w, 0.0))
+    else:
+        sw = None
+    n = int(used.sum())
+    if n < k:
+        raise ValueError(f"lstsq: {n} usable rows for {k} coefficients")
+    all_used = n == n_all
+    xu = x if all_used else x[used]
+    yu = y if all_used else y[used]
+    if sw is not None:
+        swu = sw if all_used else sw[used]
+        xu = xu * swu[:, None]
+        yu = yu * swu
+    coef, rank, cond = _solve(xu, yu, rcond, chunk_rows)
+    resid = np.full(n_all, np.nan)
+    if all_used:
+        resid = y - x @ coef
+    else:
+        resid[used] = y[used] - x[used] @ coef
+    ru = resid[used] if not all_used else resid
+    if sw is not None:
+        wu = sw[used] ** 2
+        rss = float(np.sum(wu * ru ** 2))
+        ybar = np.sum(wu * y[used]) / np.sum(wu)
+        tss = float(np.sum(wu * (y[used] - ybar) ** 2))
+        rms = float(np.sqrt(rss / np.sum(wu)))
+    else:
+        rss = float(np.dot(ru, ru))
+        yu = y[used] if not all_used else y
+        tss = float(np.sum((yu - yu.mean()) ** 2))
+        rms = float(np.sqrt(rss / n))
+    r2 = 1.0 - rss / tss if tss > 0 else float("nan")
+    return LinearFit(coef=coef, names=names, residual=resid, used=used, n=n, k=k, rank=rank,
+                     cond=cond, rss=rss, rms=rms, r2=float(r2), bic=bic(rss, n, k))
+
+
+_SEMI_NORMAL_MAX_COND = 1e6
+
+
+def _solve(x: np.ndarray, y: np.ndarray, rcond: float, chunk_rows: int) -> tuple[np.ndarray, int, float]:
+    """Solve min |x b - y| for finite x, y.  Returns (b, rank, cond of the equilibrated x).
+
+    Fast path (cond <= 1e6): corrected semi-normal equations on the equilibrated Gram matrix
+    (eigen-decomposition with cut-off, then one step of iterative refinement on the residual), which
+    keeps ~10 significant digits.  Otherwise a chunked Householder QR (TSQR) of [x/s, y]."""
+    k = x.shape[1]
+    g = x.T @ x
+    d = np.sqrt(np.diag(g)).copy()
+    d[d == 0] = 1.0
+    gs = g / np.outer(d, d)
+    evals, evecs = np.linalg.eigh(gs)
+    top = evals[-1]
+    cond = float(np.sqrt(top / evals[0])) if evals[0] > 0 else float("inf")
+    if cond <= _SEMI_NORMAL_MAX_COND:
+        keep = evals > top * rcond ** 2
+        inv = evecs[:, keep] @ np.diag(1.0 / evals[keep]) @ evecs[:, keep].T
+        coef = (inv @ ((x.T @ y) / d)) / d
+        r = y - x @ coef
+        coef = coef + (inv @ ((x.T @ r) / d)) / d
+        return coef, int(keep.sum()), cond
+    rs = []
+    n = x.shape[0]
+    for start in range(0, n, chunk_rows):
+        stop = min(n, start + chunk_rows)
+        block = np.empty((stop - start, k + 1), order="F")
+        block[:, :k] = x[start:stop]
+        block[:, :k] /= d
+        block[:, k] = y[start:stop]
+        rs.append(scipy.linalg.qr(block, mode="r", overwrite_a=True, check_finite=False)[0])
+    r = rs[0] if len(rs) == 1 else scipy.linalg.qr(np.vstack(rs), mode="r", check_finite=False)[0]
+    r = r[: k + 1]
+    u, s, vt = np.linalg.svd(r[:k, :k])
+    cond = float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
+    keep = s > rcond * s[0]
+    coef = (vt[keep].T @ ((u[:, keep].T @ r[:k, k]) / s[keep])) / d
+    return coef, int(keep.sum()), cond
+
+
+def newey_west_lags(n: int) -> int:
+    """statsmodels' default HAC lag count floor(4 (n/100)^(2/9))."""
+    return int(np.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))
+
+
+def ols_hac(x: np.ndarray, y: np.ndarray, maxlags: int | None = None):
+    """statsmodels OLS with Newey-West (HAC) covariance; rows with NaN are dropped."""
+    import statsmodels.api as sm
+
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    ok = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
+    lags = newey_west_lags(int(ok.sum())) if maxlags is None else int(maxlags)
+    return sm.OLS(y[ok], x[ok]).fit(cov_type="HAC", cov_kwds={"maxlags": lags})
+
+
+def wald_hac(x: np.ndarray, y: np.ndarray, columns: list[int], maxlags: int | None = None) -> tuple[float, float, int]:
+    """Robust (HAC) Wald test that the coefficients of ``columns`` are all zero: (chi2, p, df)."""
+    res = ols_hac(x, y, maxlags)
+    r = np.zeros((len(columns), x.shape[1]))
+    for i, c in enumerate(columns):
+        r[i, c] = 1.0
+    test = res.wald_test(r, scalar=True, use_f=False)
+    return float(test.statistic), float(test.pvalue), len(columns)
+
+
+def decimate_indices(time_s: np.ndarray, every_s: float) -> np.ndarray:
+    """Indices of the first sample in each consecutive ``every_s`` window (one point per window)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    if len(t) == 0:
+        return np.array([], dtype=np.int64)
+    block = np.floor((t - t[0]) / float(every_s)).astype(np.int64)
+    first = np.r_[True, block[1:] != block[:-1]]
+    return np.flatnonzero(first)

@@ -1,0 +1,397 @@
+"""Data preparation: outliers, averaging, temperature rates, gradients, Earth rate, axes, eight-position.
+
+Pure functions over numpy arrays / ``Dataset``; no I/O.  Sources:
+
+* Pauta (3-sigma, 拉依达准则) rejection, applied to residuals or short windows only, never to a
+  trending raw signal (calibration-notes 4.1 "Outliers"; S000 3.3).
+* 100-s averaging ("百秒标准差", S000 Table 3) -> ``block_average``.
+* dT/dt in C/min (S000 eq 4 unit of q; S001 defines a forward difference over a set interval).  Filter
+  used here: the **centred least-squares slope over ``window_s`` seconds** (Savitzky-Golay first
+  derivative, polyorder 1, which equals polyorder 2 at the window centre), computed on the series
+  linearly resampled to a uniform grid at the median sample period; samples whose window is not
+  covered by data (gap longer than ``window_s/2``) get NaN.  Calibration-notes lesson 9.
+* Earth rate (calibration-notes sec. 3/6): Omega_ENU = 15.041 deg/h * [0, cos(lat), sin(lat)];
+  reading of body axis i = u_i . Omega, u_i = unit vector of body axis i in ENU given by the
+  orientation code (letters = directions of body x, y, z; default ``NUE`` = S000's 北天东).
+* Installation matrix M (S000 eq 1): omega_system = M @ omega_channel; channel axis i in the system
+  frame = row i of inv(M), so Earth rate read by channel i = (inv(M) @ Omega_body)_i (S000 eq 2).
+* Eight-position test (S000 3.2): positions ESD, USE, WSU, DSW, WND, UNW, ENU, DNE; per-position
+  means y_k = b + A @ Omega_body,k, solved by least squares for bias b and A = inv(M).
+* Bin-averaging by temperature (calibration-notes lesson 1; PX4 / ArduPilot 0.5 C bins).
+
+Public API::
+
+    pauta_mask(x, *, time=None, window_s=None, n_sigma=3.0, max_iter=10) -> bool array (True = keep)
+    block_average(ds, period_s=100.0, *, min_fraction=0.5) -> Dataset
+    rate_c_per_min(time_s, temp_c, window_s=DEFAULT_RATE_WINDOW_S) -> array (C/min)
+    add_rates(ds, window_s=DEFAULT_RATE_WINDOW_S, names=None) -> Dataset  (adds rate_<name> columns)
+    gradient(ds, a, b) -> array   (temp_a - temp_b)
+    bin_by_temperature(temp, *ys, bin_c=0.5, min_count=1) -> (t_mean, [y_means], counts)
+    bin_dataset_by_temperature(ds, probe, bin_c=0.5, min_count=1) -> Dataset
+    orientation_axes(code) -> (3,3) rows = body x,y,z unit vectors in ENU
+    earth_rate_enu(lat_deg) -> (3,)
+    earth_rate_body(code, lat_deg) -> (3,)
+    earth_rate_reading(ds, channel, latitude_deg=None, axis=None) -> array (deg/h, per sample)
+    remove_earth_rate(ds, latitude_deg=None, axes=None) -> Dataset  (gyro_<ch> minus Earth rate)
+    channel_axes_from_m(m) -> (3,3) ;  to_system_axes(ds, m, channels, out) / to_channel_axes(...)
+    eight_position(ds, channels, latitude_deg=None, settle_s=0.0) -> EightPositionResult
+    EIGHT_POSITIONS = ("ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+from bench.errors import DataFormatError
+from bench.fit.base import EARTH_RATE_DPH, Dataset
+from bench.fit.csvio import ORIENTATION_DEFAULT, validate_orientation
+
+DEFAULT_RATE_WINDOW_S = 120.0
+EIGHT_POSITIONS = ("ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
+_ENU = {"E": (1.0, 0.0, 0.0), "W": (-1.0, 0.0, 0.0), "N": (0.0, 1.0, 0.0), "S": (0.0, -1.0, 0.0),
+        "U": (0.0, 0.0, 1.0), "D": (0.0, 0.0, -1.0)}
+_BODY = {"x": 0, "y": 1, "z": 2}
+
+
+# ----------------------------------------------------------------------------------------- outliers
+def pauta_mask(x: np.ndarray, *, time: np.ndarray | None = None, window_s: float | None = None,
+               n_sigma: float = 3.0, max_iter: int = 10) -> np.ndarray:
+    """Pauta criterion: True where |x - mean| <= n_sigma * std (iterated until nothing changes).
+
+    Apply to residuals (``window_s=None``: one global mean/std) or to a raw signal in short windows
+    (``time`` and ``window_s`` given: mean/std per consecutive window of ``window_s`` seconds).
+    NaN samples are never kept.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    keep = np.isfinite(x)
+    if window_s is None:
+        groups = np.zeros(len(x), dtype=np.int64)
+    else:
+        if time is None:
+            raise ValueError("pauta_mask: window_s needs time")
+        t = np.asarray(time, dtype=np.float64)
+        groups = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
+    ng = int(groups.max()) + 1 if len(groups) else 0
+    for _ in range(max_iter):
+        w = keep.astype(np.float64)
+        xv = np.where(keep, x, 0.0)
+        cnt = np.bincount(groups, w, ng)
+        s1 = np.bincount(groups, xv, ng)
+        mean = s1 / np.maximum(cnt, 1)
+        dev = np.where(keep, x - mean[groups], 0.0)
+        var = np.bincount(groups, dev * dev, ng) / np.maximum(cnt - 1, 1)
+        sd = np.sqrt(var)
+        new_keep = keep & (np.abs(x - mean[groups]) <= n_sigma * sd[groups])
+        new_keep |= keep & (cnt[groups] < 3)         # too few samples to judge
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return keep
+
+
+# ---------------------------------------------------------------------------------------- averaging
+def _segment_ids(ds: Dataset, period_s: float) -> np.ndarray:
+    t = ds.time
+    block = np.floor((t - t[0]) / float(period_s)).astype(np.int64)
+    change = np.zeros(len(t), dtype=bool)
+    if len(t):
+        change[0] = True
+        change[1:] = block[1:] != block[:-1]
+        if "orientation" in ds:
+            o = np.asarray(ds["orientation"])
+            change[1:] |= o[1:] != o[:-1]
+    return np.cumsum(change) - 1
+
+
+def block_average(ds: Dataset, period_s: float = 100.0, *, min_fraction: float = 0.5) -> Dataset:
+    """Average every numeric column over consecutive ``period_s`` blocks of time (aligned on the first
+    sample); a block is split where ``orientation`` changes.  NaNs are ignored per column; blocks with
+    fewer than ``min_fraction`` of the expected samples (from the median sample period) are dropped.
+    ``time_s`` becomes the mean time of the samples in the block.  ``meta['average_s']`` is set."""
+    if len(ds) == 0:
+        return ds
+    seg = _segment_ids(ds, period_s)
+    nseg = int(seg[-1]) + 1
+    counts = np.bincount(seg, minlength=nseg)
+    dt = float(np.median(np.diff(ds.time))) if len(ds) > 1 else period_s
+    expected = max(1.0, period_s / dt)
+    keep_seg = counts >= min_fraction * min(expected, counts.max())
+    cols: dict[str, np.ndarray] = {}
+    for name, col in ds.columns.items():
+        if name == "orientation":
+            first = np.zeros(nseg, dtype=np.int64)
+            first[seg[::-1]] = np.arange(len(seg))[::-1]
+            cols[name] = np.asarray(col)[first][keep_seg]
+            continue
+        v = np.asarray(col, dtype=np.float64)
+        ok = np.isfinite(v)
+        n = np.bincount(seg, ok.astype(np.float64), nseg)
+        s = np.bincount(seg, np.where(ok, v, 0.0), nseg)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(n > 0, s / np.maximum(n, 1), np.nan)
+        cols[name] = mean[keep_seg]
+    meta = dict(ds.meta)
+    meta["average_s"] = repr(float(period_s))
+    return Dataset(cols, meta)
+
+
+def bin_by_temperature(temp: np.ndarray, *ys: np.ndarray, bin_c: float = 0.5,
+                       min_count: int = 1) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """Average ``ys`` in equal-width temperature bins of ``bin_c`` (calibration-notes lesson 1).
+
+    Returns (mean temperature per bin, [mean of each y per bin], sample count per bin); empty bins and
+    bins with fewer than ``min_count`` samples are dropped.  Samples with NaN anywhere are ignored."""
+    temp = np.asarray(temp, dtype=np.float64)
+    ok = np.isfinite(temp)
+    for y in ys:
+        ok &= np.isfinite(np.asarray(y, dtype=np.float64))
+    tt = temp[ok]
+    if tt.size == 0:
+        return np.array([]), [np.array([]) for _ in ys], np.array([], dtype=np.int64)
+    idx = np.floor((tt - tt.min()) / bin_c).astype(np.int64)
+    nb = int(idx.max()) + 1
+    cnt = np.bincount(idx, minlength=nb)
+    good = cnt >= max(1, min_count)
+    tm = np.bincount(idx, tt, nb)[good] / cnt[good]
+    means = [np.bincount(idx, np.asarray(y, dtype=np.float64)[ok], nb)[good] / cnt[good] for y in ys]
+    return tm, means, cnt[good]
+
+
+def bin_dataset_by_temperature(ds: Dataset, probe: str, bin_c: float = 0.5, min_count: int = 1) -> Dataset:
+    """``Dataset`` of per-bin means of every numeric column, binned on ``temp_<probe>``.
+
+    A sample is used when ``temp_<probe>`` is finite; other columns are averaged over their finite
+    values in the bin (NaN when a bin has none).  ``orientation`` is dropped (bins mix positions)."""
+    temp = np.asarray(ds[f"temp_{probe}"], dtype=np.float64)
+    ok = np.isfinite(temp)
+    tt = temp[ok]
+    if tt.size == 0:
+        raise DataFormatError(f"temp_{probe} has no finite value to bin on")
+    idx = np.floor((tt - tt.min()) / bin_c).astype(np.int64)
+    nb = int(idx.max()) + 1
+    cnt = np.bincount(idx, minlength=nb)
+    good = cnt >= max(1, min_count)
+    cols = {}
+    for name, col in ds.columns.items():
+        if name == "orientation":
+            continue
+        v = np.asarray(col, dtype=np.float64)[ok]
+        f = np.isfinite(v)
+        n = np.bincount(idx, f.astype(np.float64), nb)
+        s = np.bincount(idx, np.where(f, v, 0.0), nb)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cols[name] = np.where(n > 0, s / np.maximum(n, 1), np.nan)[good]
+    order = np.argsort(cols["time_s"])
+    cols = {k: v[order] for k, v in cols.items()}
+    cols["bin_count"] = cnt[good][order].astype(np.float64)
+    meta = dict(ds.meta)
+    meta["binned_on"] = f"temp_{probe}"
+    meta["bin_c"] = repr(float(bin_c))
+    return Dataset(cols, meta)
+
+
+# -------------------------------------------------------------------------------------------- rates
+def rate_c_per_min(time_s: np.ndarray, temp_c: np.ndarray, window_s: float = DEFAULT_RATE_WINDOW_S) -> np.ndarray:
+    """dT/dt in C/min: centred least-squares slope over ``window_s`` seconds (see module docstring)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    x = np.asarray(temp_c, dtype=np.float64)
+    out = np.full(len(t), np.nan)
+    ok = np.isfinite(x) & np.isfinite(t)
+    if ok.sum() < 3:
+        return out
+    to, xo = t[ok], x[ok]
+    dt = float(np.median(np.diff(to)))
+    if dt <= 0:
+        raise ValueError("rate_c_per_min: time must increase")
+    half = max(1, int(round(window_s / dt / 2.0)))
+    grid = np.arange(to[0], to[-1] + dt / 2, dt)
+    if len(grid) < 2 * half + 1:
+        half = max(1, (len(grid) - 1) // 2)
+    if len(grid) < 3:
+        return out
+    xg = np.interp(grid, to, xo)
+    slope = savgol_filter(xg, 2 * half + 1, polyorder=1, deriv=1, delta=dt, mode="interp")
+    rate = np.interp(t, grid, slope) * 60.0
+    # samples near a gap longer than half the window: the filter saw interpolated, not measured data
+    gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
+    for g in gaps:
+        lo, hi = to[g], to[g + 1]
+        out_mask = (t > lo - window_s / 2.0 + dt) & (t < hi + window_s / 2.0 - dt) & (hi - lo > window_s / 2.0)
+        rate[out_mask] = np.nan
+    rate[(t < to[0]) | (t > to[-1])] = np.nan
+    out[:] = rate
+    return out
+
+
+def add_rates(ds: Dataset, window_s: float = DEFAULT_RATE_WINDOW_S, names: list[str] | None = None) -> Dataset:
+    """Add ``rate_<name>`` (C/min) for each ``temp_<name>`` (or only ``names``)."""
+    names = ds.temp_names() if names is None else names
+    cols = {f"rate_{n}": rate_c_per_min(ds.time, ds[f"temp_{n}"], window_s) for n in names}
+    out = ds.with_columns(**cols)
+    out.meta["rate_window_s"] = repr(float(window_s))
+    return out
+
+
+def gradient(ds: Dataset, a: str, b: str) -> np.ndarray:
+    """Temperature difference temp_a - temp_b (C), the gradient term of S000 eq 4."""
+    return np.asarray(ds[f"temp_{a}"], dtype=np.float64) - np.asarray(ds[f"temp_{b}"], dtype=np.float64)
+
+
+# --------------------------------------------------------------------------------------- Earth rate
+def orientation_axes(code: str) -> np.ndarray:
+    """(3,3) array; row i = unit vector of body axis i (x, y, z) in ENU for an orientation code."""
+    validate_orientation(code)
+    return np.array([_ENU[c] for c in code])
+
+
+def earth_rate_enu(latitude_deg: float) -> np.ndarray:
+    lat = np.radians(latitude_deg)
+    return EARTH_RATE_DPH * np.array([0.0, np.cos(lat), np.sin(lat)])
+
+
+def earth_rate_body(code: str, latitude_deg: float) -> np.ndarray:
+    """Earth rate read by body axes x, y, z (deg/h) in orientation ``code``."""
+    return orientation_axes(code) @ earth_rate_enu(latitude_deg)
+
+
+def _latitude(ds: Dataset, latitude_deg: float | None) -> float:
+    if latitude_deg is not None:
+        return float(latitude_deg)
+    if "latitude_deg" in ds.meta:
+        return float(ds.meta["latitude_deg"])
+    raise DataFormatError("latitude unknown: pass latitude_deg or put '# latitude_deg: ...' in the data")
+
+
+def _orientation_codes(ds: Dataset) -> np.ndarray:
+    if "orientation" not in ds:
+        return np.full(len(ds), ORIENTATION_DEFAULT, dtype=object)
+    o = np.asarray(ds["orientation"], dtype=object)
+    return np.where(o == "", ORIENTATION_DEFAULT, o)
+
+
+def body_earth_rates(ds: Dataset, latitude_deg: float | None = None) -> np.ndarray:
+    """(n, 3) Earth rate on body x, y, z per sample (deg/h) from orientation and latitude."""
+    lat = _latitude(ds, latitude_deg)
+    codes = _orientation_codes(ds)
+    out = np.empty((len(ds), 3))
+    for code in set(codes.tolist()):
+        out[codes == code] = earth_rate_body(code, lat)
+    return out
+
+
+def default_axis(channel: str) -> np.ndarray:
+    """Sensing axis of channel ``x``/``y``/``z`` in the body frame; other names need an explicit axis."""
+    if channel not in _BODY:
+        raise DataFormatError(f"sensing axis of channel {channel!r} unknown: pass axis= (a body-frame vector, "
+                              "e.g. a row of channel_axes_from_m(M))")
+    v = np.zeros(3)
+    v[_BODY[channel]] = 1.0
+    return v
+
+
+def earth_rate_reading(ds: Dataset, channel: str, latitude_deg: float | None = None,
+                       axis: np.ndarray | None = None) -> np.ndarray:
+    """Earth rate seen by ``gyro_<channel>`` per sample (deg/h)."""
+    a = default_axis(channel) if axis is None else np.asarray(axis, dtype=np.float64)
+    return body_earth_rates(ds, latitude_deg) @ a
+
+
+def remove_earth_rate(ds: Dataset, latitude_deg: float | None = None,
+                      axes: dict[str, np.ndarray] | None = None) -> Dataset:
+    """Return ``ds`` with the Earth rate subtracted from every ``gyro_<ch>`` (axes: channel -> body
+    vector; channels x/y/z default to the body axes).  Sets ``meta['earth_rate_removed'] = 'yes'``."""
+    if ds.meta.get("earth_rate_removed") == "yes":
+        raise DataFormatError("Earth rate already removed from this dataset")
+    omega = body_earth_rates(ds, latitude_deg)
+    axes = axes or {}
+    cols = {}
+    for ch in ds.gyro_channels():
+        a = axes.get(ch)
+        a = default_axis(ch) if a is None else np.asarray(a, dtype=np.float64)
+        cols[f"gyro_{ch}"] = np.asarray(ds[f"gyro_{ch}"], dtype=np.float64) - omega @ a
+    out = ds.with_columns(**cols)
+    out.meta["earth_rate_removed"] = "yes"
+    return out
+
+
+# ------------------------------------------------------------------------------- installation matrix
+def channel_axes_from_m(m: np.ndarray) -> np.ndarray:
+    """Rows = channel sensing axes (with scale) in the system frame: inv(M) of S000 eq 1."""
+    return np.linalg.inv(np.asarray(m, dtype=np.float64))
+
+
+def to_system_axes(ds: Dataset, m: np.ndarray, channels=("1", "2", "3"), out=("x", "y", "z")) -> Dataset:
+    """S000 eq 1: [w_x, w_y, w_z] = M @ [w_1, w_2, w_3]; adds gyro_<out> columns."""
+    w = np.vstack([np.asarray(ds[f"gyro_{c}"], dtype=np.float64) for c in channels])
+    s = np.asarray(m, dtype=np.float64) @ w
+    return ds.with_columns(**{f"gyro_{o}": s[i] for i, o in enumerate(out)})
+
+
+def to_channel_axes(ds: Dataset, m: np.ndarray, system=("x", "y", "z"), channels=("1", "2", "3")) -> Dataset:
+    """Inverse of ``to_system_axes``: [w_1, w_2, w_3] = inv(M) @ [w_x, w_y, w_z]."""
+    return to_system_axes(ds, np.linalg.inv(np.asarray(m, dtype=np.float64)), system, channels)
+
+
+@dataclass
+class EightPositionResult:
+    """Result of the eight-position test (S000 3.2).
+
+    ``bias``: channel -> bias (deg/h, Earth rate separated); ``m``: installation matrix (S000 eq 1,
+    system = M @ channel, unit scale assumed 1 deg/h per deg/h); ``a`` = inv(M) (rows = channel axes);
+    ``position_means``: code -> per-channel mean; ``residual_rms_dph`` of the per-position fit."""
+
+    channels: list[str]
+    bias: dict[str, float]
+    m: np.ndarray
+    a: np.ndarray
+    position_means: dict[str, list[float]]
+    residual_rms_dph: float
+    latitude_deg: float
+    extra: dict = field(default_factory=dict)
+
+
+def eight_position(ds: Dataset, channels: list[str] | tuple[str, ...] | None = None,
+                   latitude_deg: float | None = None, settle_s: float = 0.0) -> EightPositionResult:
+    """Separate bias and Earth rate, and estimate M, from multi-position static data.
+
+    Per position (consecutive samples with the same orientation code; the first ``settle_s`` seconds of
+    each dwell are skipped), the channel means y_k are modelled as y_k = b + A @ Omega_body(k) and solved
+    by least squares over all positions (at least 4 with independent Earth-rate projections; the
+    eight S000 positions give a well-posed problem).  M = inv(A)."""
+    if "orientation" not in ds:
+        raise DataFormatError("eight-position data needs an orientation column")
+    lat = _latitude(ds, latitude_deg)
+    channels = list(channels or ds.gyro_channels())
+    if len(channels) != 3:
+        raise DataFormatError(f"eight-position needs exactly 3 gyro channels, got {channels}")
+    codes = np.asarray(ds["orientation"], dtype=object)
+    t = ds.time
+    start = np.r_[0, np.flatnonzero(codes[1:] != codes[:-1]) + 1]
+    stop = np.r_[start[1:], len(codes)]
+    rows_w, rows_y, means = [], [], {}
+    for s, e in zip(start, stop):
+        code = codes[s]
+        if code == "":
+            continue
+        sel = slice(s, e)
+        use = t[sel] >= t[s] + settle_s
+        y = np.array([np.nanmean(np.asarray(ds[f"gyro_{c}"], dtype=np.float64)[sel][use]) for c in channels])
+        if not np.all(np.isfinite(y)):
+            continue
+        rows_w.append(earth_rate_body(code, lat))
+        rows_y.append(y)
+        means.setdefault(code, []).append(y.tolist())
+    if len(rows_w) < 4:
+        raise DataFormatError(f"eight-position: need at least 4 positions, found {len(rows_w)}")
+    g = np.hstack([np.ones((len(rows_w), 1)), np.array(rows_w)])
+    if np.linalg.matrix_rank(g) < 4:
+        raise DataFormatError("eight-position: positions do not separate bias from Earth rate (rank < 4)")
+    sol, *_ = np.linalg.lstsq(g, np.array(rows_y), rcond=None)
+    bias, a = sol[0], sol[1:].T
+    resid = np.array(rows_y) - g @ sol
+    return EightPositionResult(
+        channels=channels, bias={c: float(bias[i]) for i, c in enumerate(channels)}, m=np.linalg.inv(a), a=a,
+        position_means={k: np.mean(v, axis=0).tolist() for k, v in means.items()},
+        residual_rms_dph=float(np.sqrt(np.mean(resid ** 2))), latitude_deg=lat)

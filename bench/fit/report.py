@@ -1,0 +1,300 @@
+"""Self-contained HTML report of fitted models (no external resources: plots are base64 PNG made with
+matplotlib's Agg canvas, no CDN, no scripts).
+
+Reusable pieces (the close-the-loop feature uses them): ``plot_temperatures``, ``plot_bias``,
+``plot_residuals``, ``plot_adev`` return an ``<img>`` HTML snippet; ``html_table`` and
+``coefficient_table`` return escaped ``<table>`` snippets; ``series_metrics`` returns the numbers.
+
+Metrics (calibration-notes lessons 6, 7): RMS, peak-to-peak, bias stability as the std of 100-s means
+(GJB 2426A convention), and the minimum of the overlapping Allan deviation (allantools ``oadev``,
+``data_type="freq"``, octave taus -- never "all").  Allan deviation before (raw) and after
+(compensated) is plotted per model.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from bench.fit.base import Dataset, FitResult
+from bench.fit.fog import block_average, run_segments, smoothed_and_rate
+
+Prediction = tuple[np.ndarray, np.ndarray]
+PredictFn = Callable[[FitResult, Dataset], Prediction]
+
+MAX_PLOT_POINTS = 4000
+
+
+# --------------------------------------------------------------------------------------------
+# Plot helpers (each returns an <img> snippet)
+# --------------------------------------------------------------------------------------------
+
+
+def figure_to_img(fig: Figure, alt: str) -> str:
+    buf = io.BytesIO()
+    FigureCanvasAgg(fig)
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    data = base64.b64encode(buf.getvalue()).decode("ascii")
+    return f'<img alt="{html.escape(alt, quote=True)}" src="data:image/png;base64,{data}">'
+
+
+def _new_figure(title: str, xlabel: str, ylabel: str) -> tuple[Figure, Any]:
+    fig = Figure(figsize=(8.0, 3.2))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    return fig, ax
+
+
+def _thin(n: int, max_points: int = MAX_PLOT_POINTS) -> slice:
+    return slice(None, None, max(1, int(np.ceil(n / max_points))))
+
+
+def plot_temperatures(dataset: Dataset, title: str = "Temperatures") -> str:
+    t = np.asarray(dataset.time, float)
+    fig, ax = _new_figure(title, "time (h)", "temperature (C)")
+    s = _thin(t.size)
+    for name in dataset.temp_names():
+        ax.plot(t[s] / 3600.0, np.asarray(dataset[f"temp_{name}"], float)[s], lw=1, label=name)
+    if dataset.temp_names():
+        ax.legend(loc="best", fontsize=8)
+    return figure_to_img(fig, title)
+
+
+def plot_bias(time_s: np.ndarray, raw: np.ndarray, compensated: np.ndarray, title: str,
+              unit: str = "deg/h", flagged: np.ndarray | None = None) -> str:
+    """Raw and compensated series against time (mean of raw removed for the raw curve, as the paper
+    plots it); flagged samples (outside the model's validity) marked in red."""
+    t = np.asarray(time_s, float) / 3600.0
+    raw = np.asarray(raw, float)
+    comp = np.asarray(compensated, float)
+    fig, ax = _new_figure(title, "time (h)", unit)
+    s = _thin(t.size)
+    ax.plot(t[s], (raw - np.mean(raw))[s], lw=0.8, label="raw - mean")
+    ax.plot(t[s], comp[s], lw=0.8, label="compensated")
+    if flagged is not None and np.any(flagged):
+        f = np.nonzero(np.asarray(flagged, bool))[0]
+        f = f[_thin(f.size)]
+        ax.plot(t[f], comp[f], "r.", ms=2, label="outside validity")
+    ax.legend(loc="best", fontsize=8)
+    return figure_to_img(fig, title)
+
+
+def plot_residuals(residual: np.ndarray, x: np.ndarray, xlabel: str, title: str,
+                   unit: str = "deg/h", flagged: np.ndarray | None = None) -> str:
+    r = np.asarray(residual, float)
+    x = np.asarray(x, float)
+    fig, ax = _new_figure(title, xlabel, f"residual ({unit})")
+    s = _thin(r.size)
+    ax.plot(x[s], r[s], ".", ms=2, alpha=0.5)
+    if flagged is not None and np.any(flagged):
+        f = np.nonzero(np.asarray(flagged, bool))[0]
+        f = f[_thin(f.size)]
+        ax.plot(x[f], r[f], "r.", ms=2, label="outside validity")
+        ax.legend(loc="best", fontsize=8)
+    ax.axhline(0.0, color="k", lw=0.5)
+    return figure_to_img(fig, title)
+
+
+def allan(series: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """Overlapping Allan deviation of a rate series (allantools oadev, data_type="freq", octave taus)."""
+    import allantools
+
+    x = np.asarray(series, float)
+    if x.size < 4:
+        return np.zeros(0), np.zeros(0)
+    taus, devs, _, _ = allantools.oadev(x, rate=rate_hz, data_type="freq", taus="octave")
+    ok = np.isfinite(devs) & (devs > 0)
+    return np.asarray(taus)[ok], np.asarray(devs)[ok]
+
+
+def plot_adev(series: dict[str, np.ndarray], rate_hz: float, title: str = "Allan deviation",
+              unit: str = "deg/h") -> str:
+    fig, ax = _new_figure(title, "tau (s)", f"Allan deviation ({unit})")
+    for label, values in series.items():
+        taus, devs = allan(values, rate_hz)
+        if taus.size:
+            ax.loglog(taus, devs, marker=".", lw=1, label=label)
+    ax.legend(loc="best", fontsize=8)
+    return figure_to_img(fig, title)
+
+
+# --------------------------------------------------------------------------------------------
+# Tables and metrics
+# --------------------------------------------------------------------------------------------
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return str(bool(value))
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return "nan" if not np.isfinite(value) else f"{float(value):.6g}"
+    if isinstance(value, (list, tuple)) and len(value) > 8:
+        return f"[{len(value)} items]"
+    return str(value)
+
+
+def html_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], caption: str | None = None,
+               css_class: str = "tbl") -> str:
+    out = [f'<table class="{html.escape(css_class, quote=True)}">']
+    if caption:
+        out.append(f"<caption>{html.escape(caption)}</caption>")
+    out.append("<tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in headers) + "</tr>")
+    for row in rows:
+        out.append("<tr>" + "".join(f"<td>{html.escape(_fmt(v))}</td>" for v in row) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+def coefficient_table(result: FitResult) -> str:
+    rows = [(name, value, result.units.get(name, "")) for name, value in result.coefficients.items()]
+    return html_table(("term", "value", "unit"), rows, caption=f"{result.model} / {result.channel}: coefficients",
+                      css_class="coef")
+
+
+def series_metrics(time_s: np.ndarray, values: np.ndarray, window_s: float = 100.0) -> dict[str, float]:
+    """RMS, peak-to-peak, std of ``window_s`` means, Allan-deviation minimum."""
+    t = np.asarray(time_s, float)
+    v = np.asarray(values, float)
+    ok = np.isfinite(v)
+    t, v = t[ok], v[ok]
+    if v.size == 0:
+        return {"rms": float("nan"), "p2p": float("nan"), "std100": float("nan"), "adev_min": float("nan")}
+    _, cols, _ = block_average(t, {"v": v}, window_s, run_segments(t))
+    means = cols["v"]
+    step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    _, devs = allan(v, 1.0 / step if step > 0 else 1.0)
+    return {"rms": float(np.sqrt(np.mean(v ** 2))), "p2p": float(v.max() - v.min()),
+            "std100": float(np.std(means, ddof=1)) if means.size > 1 else float("nan"),
+            "adev_min": float(devs.min()) if devs.size else float("nan")}
+
+
+def _temperature_for(result: FitResult, dataset: Dataset) -> tuple[np.ndarray | None, str]:
+    d = result.definition
+    col = d.get("temperature_column")
+    if col and col in dataset:
+        return np.asarray(dataset[col], float), col
+    src = d.get("temperature_source") or {}
+    if src.get("kind") == "reverse_cubic" and src.get("freq_column") in dataset:
+        u = (np.asarray(dataset[src["freq_column"]], float) - src["f_centre_hz"]) / src["f_scale_hz"]
+        return np.polynomial.polynomial.polyval(u, src["coefficients"]), f"T({src['freq_column']})"
+    names = dataset.temp_names()
+    if names:
+        return np.asarray(dataset[f"temp_{names[0]}"], float), f"temp_{names[0]}"
+    return None, ""
+
+
+def _unit_of(result: FitResult) -> str:
+    return "C" if result.target.startswith("temp_") else ("Hz" if result.target.startswith("freq_") else "deg/h")
+
+
+# --------------------------------------------------------------------------------------------
+# Page
+# --------------------------------------------------------------------------------------------
+
+_CSS = """
+body{font-family:sans-serif;margin:1.5em;max-width:70em}
+table{border-collapse:collapse;margin:0.6em 0}
+th,td{border:1px solid #bbb;padding:2px 8px;text-align:right}
+th{background:#eee} caption{font-weight:bold;text-align:left}
+img{display:block;margin:0.4em 0;max-width:100%}
+.note{color:#555;font-size:90%}
+"""
+
+
+def _dataset_section(label: str, result: FitResult, dataset: Dataset, pred: Prediction,
+                     metric_rows: list[list[Any]]) -> str:
+    unit = _unit_of(result)
+    if result.target not in dataset or "time_s" not in dataset:
+        return f"<p class='note'>{html.escape(label)}: column {html.escape(result.target)} missing</p>"
+    t = np.asarray(dataset.time, float)
+    measured = np.asarray(dataset[result.target], float)
+    values, flagged = (np.asarray(a) for a in pred)
+    residual = measured - values
+    name = f"{result.model} / {result.channel} - {label}"
+    parts = [f"<h3>{html.escape(name)}</h3>",
+             plot_bias(t, measured, residual, f"{name}: raw vs compensated", unit, flagged)]
+    temp, temp_label = _temperature_for(result, dataset)
+    if temp is not None:
+        segs = run_segments(t, dataset.columns.get("run"))
+        window = float(result.definition.get("average_s", 100.0) or 100.0)
+        smooth, rate = smoothed_and_rate(t, temp, window, segs)
+        parts.append(plot_residuals(residual, smooth, f"{temp_label} (C)", f"{name}: residual vs T", unit, flagged))
+        parts.append(plot_residuals(residual, rate, "dT/dt (C/min)", f"{name}: residual vs dT/dt", unit, flagged))
+    step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    parts.append(plot_adev({"raw": measured, "compensated": residual}, 1.0 / step if step > 0 else 1.0,
+                           f"{name}: Allan deviation", unit))
+    for kind, series in (("raw", measured - np.mean(measured)), ("compensated", residual)):
+        m = series_metrics(t, series)
+        metric_rows.append([result.model, result.channel, label, kind, m["rms"], m["p2p"], m["std100"],
+                            m["adev_min"], float(np.mean(flagged)) if kind == "compensated" else ""])
+    return "\n".join(parts)
+
+
+def render_fit_report(results: Sequence[FitResult], train: Dataset, validation: Dataset | None = None,
+                      train_predictions: Sequence[Prediction | None] | None = None,
+                      validation_predictions: Sequence[Prediction | None] | None = None,
+                      predict: PredictFn | None = None, title: str = "Fit report") -> str:
+    """One self-contained HTML page.
+
+    Predictions are (values, flagged) per result, in the order of ``results``; a missing one is
+    computed with ``predict(result, dataset)`` when given, otherwise that section is left out."""
+    def prediction(i: int, given: Sequence[Prediction | None] | None, data: Dataset) -> Prediction | None:
+        # predict() may return None to leave a section out
+        if given is not None and i < len(given) and given[i] is not None:
+            return given[i]
+        return predict(results[i], data) if predict is not None else None
+
+    body = [f"<h1>{html.escape(title)}</h1>"]
+    body.append(html_table(("dataset", "samples", "duration (h)", "meta"),
+                           [(lbl, len(d), (float(d.time[-1] - d.time[0]) / 3600.0) if len(d) > 1 else 0.0,
+                             "; ".join(f"{k}={v}" for k, v in d.meta.items()))
+                            for lbl, d in (("train", train), ("validation", validation)) if d is not None],
+                           caption="Data"))
+    body.append("<h2>Temperatures</h2>")
+    body.append(plot_temperatures(train, "Training run: temperatures"))
+    if validation is not None:
+        body.append(plot_temperatures(validation, "Validation run: temperatures"))
+
+    body.append("<h2>Models</h2>")
+    for r in results:
+        body.append(f"<h3>{html.escape(r.model)} / {html.escape(r.channel)} &rarr; {html.escape(r.target)}</h3>")
+        formula = r.definition.get("formula")
+        if formula:
+            body.append(f"<p><code>{html.escape(str(formula))}</code></p>")
+        if r.coefficients:
+            body.append(coefficient_table(r))
+        body.append(html_table(("statistic", "value"), [(k, v) for k, v in r.stats.items()
+                                                        if not isinstance(v, (dict, np.ndarray))],
+                               caption="fit statistics", css_class="stats"))
+        body.append(html_table(("validity", "value"), [(k, v) for k, v in r.validity.items()],
+                               caption="validity", css_class="validity"))
+
+    metric_rows: list[list[Any]] = []
+    sections: list[str] = []
+    for i, r in enumerate(results):
+        for label, data, given in (("train", train, train_predictions),
+                                   ("validation", validation, validation_predictions)):
+            if data is None:
+                continue
+            pred = prediction(i, given, data)
+            if pred is not None:
+                sections.append(_dataset_section(label, r, data, pred, metric_rows))
+    if metric_rows:
+        body.append("<h2>Error before / after</h2>")
+        body.append(html_table(("model", "channel", "data", "series", "RMS", "peak-peak", "std of 100-s means",
+                                "ADEV min", "flagged fraction"), metric_rows, caption="metrics", css_class="metrics"))
+        body.append("<h2>Plots</h2>")
+        body.extend(sections)
+    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
+            f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
+            + "\n".join(body) + "\n</body></html>\n")

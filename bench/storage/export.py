@@ -1,0 +1,174 @@
+"""Aligned columns of a run for ``bench export RUN --format csv|parquet`` and for fitting.
+
+``export_columns`` returns a dict of equal-length numpy arrays, one row per bench second (from the
+``frame_seconds`` sums) or per frame:
+
+* ``time_s`` seconds since the run's first frame second, ``bench_time_s`` absolute bench time,
+  ``n_frames`` (per-second only: valid frames averaged);
+* ``gyro_x/y/z`` in deg/h (the wire unit is taken from the run's config snapshot
+  ``gyro.output_units``: deg/s x 3600, rad/s x 180/pi x 3600), ``accel_x/y/z`` in g, ``temp_gyro``
+  (device's own sensor), ``freq_x/y/z`` for resonator gyros;
+* ``temp_<probe>``: the nearest previous valid DS18B20 reading (NaN when none within ``max_age_s``);
+* ``chamber_pv``, ``chamber_sp``, ``axis1_pos``, ``axis2_pos``, ``psu_v``, ``psu_a``, ``power_w``,
+  ``psu_on`` (1/0): nearest previous telemetry sample, same age rule;
+* ``orientation``, ``segment_kind`` (str), ``temp_point_c``, ``repetition``, ``outer_deg``,
+  ``inner_deg``: labels of the segment covering the time (the latest-started one if several).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from sqlalchemy import select
+
+from bench.storage.db import Database
+from bench.storage.errors import StorageError
+from bench.storage.models import ProbeReadingRow, Run, Segment, Telemetry
+from bench.storage.reader import read_frames, second_means
+
+_TO_DPH = {"deg/s": 3600.0, "rad/s": 180.0 / math.pi * 3600.0, "deg/h": 1.0}
+
+
+def gyro_units(db: Database, run_id: int) -> str:
+    with db.session() as s:
+        run = s.get(Run, run_id)
+        if run is None:
+            raise StorageError(f"run {run_id} does not exist")
+        gyro_cfg = (run.config_snapshot or {}).get("gyro") or {}
+        return str(gyro_cfg.get("output_units", "deg/s"))
+
+
+def _previous(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, max_age_s: float) -> np.ndarray:
+    """Value of the latest sample at or before each ``t`` (NaN if none or older than max_age_s)."""
+    out = np.full(t.shape, np.nan)
+    if t_src.size == 0:
+        return out
+    idx = np.searchsorted(t_src, t, side="right") - 1
+    ok = idx >= 0
+    ok[ok] &= (t[ok] - t_src[idx[ok]]) <= max_age_s
+    out[ok] = v_src[idx[ok]]
+    return out
+
+
+def _probe_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -> dict[str, np.ndarray]:
+    p = ProbeReadingRow
+    with db.engine.connect() as conn:
+        rows = conn.execute(select(p.name, p.t, p.celsius).where(p.run_id == run_id, p.celsius.is_not(None))
+                            .order_by(p.name, p.t)).all()
+    cols: dict[str, np.ndarray] = {}
+    names = sorted({name for name, _, _ in rows})
+    for name in names:
+        arr = np.array([(t_, c) for n, t_, c in rows if n == name], dtype=np.float64)
+        cols[f"temp_{name}"] = _previous(arr[:, 0], arr[:, 1], t, max_age_s)
+    return cols
+
+
+def _telemetry_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -> dict[str, np.ndarray]:
+    tm = Telemetry
+    wanted = {"chamber": [("chamber_pv", tm.chamber_pv), ("chamber_sp", tm.chamber_sp)],
+              "turntable": [("axis1_pos", tm.axis1_pos), ("axis2_pos", tm.axis2_pos)],
+              "psu": [("psu_v", tm.psu_volts), ("psu_a", tm.psu_amps), ("psu_on", tm.psu_on)]}
+    cols: dict[str, np.ndarray] = {}
+    with db.engine.connect() as conn:
+        for device, fields in wanted.items():
+            rows = conn.execute(select(tm.t, *[c for _, c in fields]).where(tm.run_id == run_id, tm.device == device)
+                                .order_by(tm.t)).all()
+            if not rows:
+                continue
+            arr = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype=np.float64)
+            for i, (name, _) in enumerate(fields, start=1):
+                if np.isfinite(arr[:, i]).any():
+                    cols[name] = _previous(arr[:, 0], arr[:, i], t, max_age_s)
+    if "psu_v" in cols and "psu_a" in cols:
+        cols["power_w"] = cols["psu_v"] * cols["psu_a"]
+    return cols
+
+
+def _segment_columns(db: Database, run_id: int, t: np.ndarray) -> dict[str, np.ndarray]:
+    with db.session() as s:
+        segs = list(s.scalars(select(Segment).where(Segment.run_id == run_id).order_by(Segment.t_start, Segment.id)))
+    n = t.size
+    orientation = np.full(n, "", dtype=object)
+    kind = np.full(n, "", dtype=object)
+    temp_point = np.full(n, np.nan)
+    repetition = np.full(n, -1, dtype=np.int64)
+    outer = np.full(n, np.nan)
+    inner = np.full(n, np.nan)
+    for seg in segs:          # later-started segments overwrite earlier ones where they overlap
+        end = math.inf if seg.t_end is None else seg.t_end
+        m = (t >= seg.t_start) & (t < end)
+        if not m.any():
+            continue
+        orientation[m] = seg.orientation or ""
+        kind[m] = seg.kind
+        temp_point[m] = np.nan if seg.temperature_c is None else seg.temperature_c
+        repetition[m] = seg.repetition
+        outer[m] = np.nan if seg.outer_deg is None else seg.outer_deg
+        inner[m] = np.nan if seg.inner_deg is None else seg.inner_deg
+    return {"orientation": orientation.astype(str), "segment_kind": kind.astype(str), "temp_point_c": temp_point,
+            "repetition": repetition, "outer_deg": outer, "inner_deg": inner}
+
+
+def export_columns(db: Database, run_id: int, *, resolution: Literal["second", "frame"] = "second",
+                   units: str | None = None, max_age_s: float = 30.0,
+                   t_from: float | None = None, t_to: float | None = None) -> dict[str, np.ndarray]:
+    """The run's aligned columns (see the module docstring).  Empty arrays when no frames are stored."""
+    units = units or gyro_units(db, run_id)
+    if units not in _TO_DPH:
+        raise StorageError(f"run {run_id}: gyro output unit {units!r} unknown (known: {', '.join(_TO_DPH)})")
+    scale = _TO_DPH[units]
+    cols: dict[str, np.ndarray] = {}
+    if resolution == "second":
+        sm = second_means(db, run_id, t_from=t_from, t_to=t_to)
+        t = sm.time
+        cols["n_frames"] = sm.n
+        gyro, accel, temp_gyro, freq = sm.gyro, sm.accel, sm.temperature_c, sm.freq_hz
+    elif resolution == "frame":
+        fr = read_frames(db, run_id, t_from=t_from, t_to=t_to)
+        if fr is None:
+            t, gyro, accel, temp_gyro, freq = np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), None
+        else:
+            t, gyro, accel, temp_gyro, freq = fr.time, fr.gyro, fr.accel, fr.temperature_c, fr.freq_hz
+            cols["frame_index"] = fr.index
+            cols["status"] = fr.status.astype(np.int64)
+    else:
+        raise ValueError(f"resolution must be 'second' or 'frame', got {resolution!r}")
+    t0 = math.floor(t[0]) if t.size else 0.0
+    out: dict[str, np.ndarray] = {"time_s": t - t0, "bench_time_s": t}
+    out.update(cols)
+    for i, axis in enumerate("xyz"):
+        out[f"gyro_{axis}"] = gyro[:, i] * scale
+    for i, axis in enumerate("xyz"):
+        out[f"accel_{axis}"] = accel[:, i]
+    out["temp_gyro"] = temp_gyro
+    if freq is not None:
+        for i, axis in enumerate("xyz"):
+            out[f"freq_{axis}"] = freq[:, i]
+    out.update(_probe_columns(db, run_id, t, max_age_s))
+    out.update(_telemetry_columns(db, run_id, t, max_age_s))
+    out.update(_segment_columns(db, run_id, t))
+    return out
+
+
+def write_parquet(columns: dict[str, np.ndarray], path: str | Path, metadata: dict[str, str] | None = None) -> Path:
+    """Write columns to a Parquet file (atomically: temp file then rename)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    path = Path(path)
+    table = pa.table({name: pa.array(values.tolist() if values.dtype.kind == "U" else values)
+                      for name, values in columns.items()})
+    if metadata:
+        table = table.replace_schema_metadata({**(table.schema.metadata or {}),
+                                               **{k.encode(): str(v).encode() for k, v in metadata.items()}})
+    tmp = path.with_name(path.name + ".tmp")
+    pq.write_table(table, tmp)
+    tmp.replace(path)
+    return path
+
+
+def export_parquet(db: Database, run_id: int, path: str | Path, *,
+                   resolution: Literal["second", "frame"] = "second") -> Path:
+    columns = export_columns(db, run_id, resolution=resolution)
+    return write_parquet(columns, path, {"run_id": str(run_id), "resolution": resolution, "gyro_unit": "deg/h"})

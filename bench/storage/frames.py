@@ -1,0 +1,671 @@
+"""Batched, crash-safe writer of a run's gyro frames (and its other time series).
+
+``FrameWriter(db, run_id)`` takes ``GyroFrame`` objects as they come off the link and writes them in
+timed batches from a background thread: every ``flush_interval_s`` wall seconds (default 0.5) or as
+soon as ``flush_frames`` frames are waiting, never only at the end.
+
+* Indexes: the writer gives every frame the next per-run index.  The index after the last stored
+  frame is kept in ``frame_cursors`` and updated in the **same transaction** as the chunks, so a
+  crash between batches loses only unwritten frames, never duplicates an index; a new writer
+  continues from the stored cursor and records the interruption as a ``resume`` gap.
+* Fencing: a new writer for the run takes the cursor over (``writer_token``); a stale writer that
+  still tries to write gets ``WriterFenced`` instead of interleaving indexes.
+* Outages: when the database cannot be reached (PostgreSQL restart, SQLite lock) everything stays
+  in memory (bounded by ``max_buffered_frames`` / ``max_buffered_rows``; beyond that ``add`` raises
+  ``BufferFull``) and the batch is retried with exponential backoff.  If the connection died while
+  committing, the writer reads ``frame_cursors.batch_seq`` before retrying, so a batch whose commit
+  went through is not written twice.  ``status()`` reports buffered counts and the last error.
+* Gaps: a jump in the frame sequence counter (KVH: 0..127, device-protocols.md 3.1) is recorded as a
+  ``sequence`` gap with the estimated number of missing frames; link outages the engine learns
+  from ``LinkStats.link_gaps`` go in with ``record_gap``.
+* Per-second sums (``frame_seconds``) of valid-status frames are computed with numpy when a chunk
+  is sealed and upserted with the chunks, so 1-s means never need the raw frames.
+
+Probe readings, device telemetry, events and finished segments can go through the same writer so
+they share the buffering and batching (``add_probe_readings``, ``add_chamber``, ``add_turntable``,
+``add_psu``, ``add_event``, ``add_segment``).
+"""
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import uuid
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, insert, select, update
+from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
+
+from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
+from bench.storage import codec
+from bench.storage.db import Database
+from bench.storage.errors import BufferFull, StorageError, StorageUnavailable, UnknownRun, WriterFenced
+from bench.storage.models import (SEGMENT_KINDS, Event, FrameChunk, FrameCursor, FrameSecond, Gap,
+                                  ProbeReadingRow, Run, Segment, Telemetry, utcnow)
+
+log = logging.getLogger(__name__)
+
+_SUM_COLUMNS = ("n", "n_invalid", "sum_dt", "sum_gx", "sum_gy", "sum_gz", "sum_ax", "sum_ay", "sum_az",
+                "n_temp", "sum_temp", "sum_fx", "sum_fy", "sum_fz")
+_ROW_TABLES = {"gaps": Gap.__table__, "probe_readings": ProbeReadingRow.__table__,
+               "telemetry": Telemetry.__table__, "events": Event.__table__, "segments": Segment.__table__}
+
+
+@dataclass(frozen=True)
+class WriterStatus:
+    run_id: int
+    next_index: int                 # index the next added frame will get
+    committed_frames: int           # frames this writer has committed
+    committed_index: int            # next index according to the last commit (frames below are durable)
+    buffered_frames: int            # accepted but not yet committed
+    buffered_rows: int              # other rows (gaps, probes, telemetry, events...) not yet committed
+    retries: int                    # failed write attempts so far
+    last_error: str | None
+    last_error_wall: float | None   # time.time() of the last failure
+    last_commit_wall: float | None
+    fatal: str | None               # set when the writer stopped for good (fenced, constraint error)
+    closed: bool
+
+    @property
+    def healthy(self) -> bool:
+        return self.fatal is None and (self.last_error_wall is None or
+                                       (self.last_commit_wall or 0) > self.last_error_wall)
+
+
+@dataclass
+class _Summary:
+    """Per-second sums of one or more chunks (arrays aligned on ``second``)."""
+
+    second: np.ndarray
+    cols: dict[str, np.ndarray]
+    has_freq: bool
+
+    @staticmethod
+    def merge(parts: Sequence["_Summary"]) -> "_Summary":
+        seconds = np.concatenate([p.second for p in parts])
+        uniq, inv = np.unique(seconds, return_inverse=True)
+        has_freq = any(p.has_freq for p in parts)
+        cols = {}
+        for name in _SUM_COLUMNS:
+            if name.startswith("sum_f") and not has_freq:
+                continue
+            values = np.concatenate([p.cols.get(name, np.zeros(p.second.size)) for p in parts])
+            cols[name] = np.bincount(inv, weights=values, minlength=uniq.size)
+        return _Summary(uniq, cols, has_freq)
+
+    def rows(self, run_id: int) -> list[dict[str, Any]]:
+        out = []
+        names = list(self.cols)
+        ints = {"n", "n_invalid", "n_temp"}
+        columns = [self.cols[n].tolist() for n in names]
+        for i, sec in enumerate(self.second.tolist()):
+            row = {"run_id": run_id, "second": sec}
+            for name, col in zip(names, columns):
+                row[name] = int(round(col[i])) if name in ints else col[i]
+            if not self.has_freq:
+                row["sum_fx"] = row["sum_fy"] = row["sum_fz"] = None
+            out.append(row)
+        return out
+
+
+@dataclass
+class _Chunk:
+    first_index: int
+    count: int
+    t_first: float
+    t_last: float
+    kind: str
+    size: int
+    raw: bytes
+    dt_us: bytes
+    temp_centi: bytes
+    summary: _Summary
+
+    def row(self, run_id: int) -> dict[str, Any]:
+        return {"run_id": run_id, "first_index": self.first_index, "count": self.count, "t_first": self.t_first,
+                "t_last": self.t_last, "frame_kind": self.kind, "frame_size": self.size, "raw": self.raw,
+                "dt_us": self.dt_us, "temp_centi": self.temp_centi}
+
+
+@dataclass
+class _Batch:
+    chunks: list[_Chunk]
+    rows: dict[str, list[dict[str, Any]]]
+    seq: int
+    frames: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.frames = sum(c.count for c in self.chunks)
+
+    @property
+    def empty(self) -> bool:
+        return not self.chunks and not any(self.rows.values())
+
+
+def _is_transient(exc: BaseException) -> bool:
+    if isinstance(exc, (OperationalError, InterfaceError)):
+        return True
+    return isinstance(exc, DBAPIError) and bool(exc.connection_invalidated)
+
+
+def _short(exc: BaseException) -> str:
+    orig = getattr(exc, "orig", None)
+    text = str(orig if orig is not None else exc).strip()
+    return f"{type(orig or exc).__name__}: {text.splitlines()[0] if text else ''}"
+
+
+class FrameWriter:
+    """Background batched writer for one run.  Thread-safe; see the module docstring.
+
+    Parameters: ``frame_kind`` names the raw layout (``"kvh_a"``, ``"hrg"``...; decoding on read needs
+    a registered layout, writing does not); ``valid_status`` is the status byte of a frame whose
+    values all count (KVH: 0x77; ``None`` = every frame counts); ``sequence_modulus`` the wrap of the
+    sequence counter (KVH: 128; ``None`` = no sequence check); ``nominal_rate_hz`` refines missing
+    frame estimates.  ``autostart=False`` keeps the background thread off (``flush()`` then writes
+    synchronously) - useful for deterministic tests and benchmarks.
+    """
+
+    def __init__(self, db: Database, run_id: int, *, frame_kind: str = "kvh_a", chunk_frames: int = 1000,
+                 flush_interval_s: float = 0.5, flush_frames: int = 20_000,
+                 max_buffered_frames: int = 5_000_000, max_buffered_rows: int = 1_000_000,
+                 valid_status: int | None = 0x77, sequence_modulus: int | None = 128,
+                 nominal_rate_hz: float | None = None, resume_reason: str = "resume",
+                 retry_initial_s: float = 0.1, retry_max_s: float = 5.0, autostart: bool = True) -> None:
+        if chunk_frames < 1 or flush_frames < 1 or max_buffered_frames < chunk_frames:
+            raise ValueError("chunk_frames and flush_frames must be >= 1 and max_buffered_frames >= chunk_frames")
+        self.db = db
+        self.run_id = int(run_id)
+        self.frame_kind = frame_kind
+        self.chunk_frames = chunk_frames
+        self.flush_interval_s = flush_interval_s
+        self.flush_frames = flush_frames
+        self.max_buffered_frames = max_buffered_frames
+        self.max_buffered_rows = max_buffered_rows
+        self.valid_status = valid_status
+        self.sequence_modulus = sequence_modulus
+        self.nominal_rate_hz = nominal_rate_hz
+        self.retry_initial_s = retry_initial_s
+        self.retry_max_s = retry_max_s
+        self._resume_reason = resume_reason
+        self._expected_size = codec.known_frame_size(frame_kind)
+        self._token = uuid.uuid4().hex
+        self._cond = threading.Condition()
+        self._open: list[GyroFrame] = []
+        self._chunks: list[_Chunk] = []
+        self._rows: dict[str, list[dict[str, Any]]] = {name: [] for name in _ROW_TABLES}
+        self._n_rows = 0
+        self._rows_queued = 0          # totals, so flush() can wait for rows queued before it
+        self._rows_committed = 0
+        self._inflight: _Batch | None = None   # batch whose write failed: retried as is
+        self._buffered_frames = 0
+        self._committed_frames = 0
+        self._seq = 0
+        self._retries = 0
+        self._last_error: str | None = None
+        self._last_error_wall: float | None = None
+        self._last_commit_wall: float | None = None
+        self._last_flush_mono = time.monotonic()
+        self._flush_requested = False
+        self._fatal: BaseException | None = None
+        self._closing = False
+        self._abandoned = False
+        self._closed = False
+        self._prev_seq: int | None = None
+        self._prev_time: float | None = None
+        self._thread: threading.Thread | None = None
+        self._take_over()
+        if autostart:
+            self._thread = threading.Thread(target=self._run, name=f"frame-writer-run{self.run_id}", daemon=True)
+            self._thread.start()
+
+    # ------------------------------------------------------------------ setup
+    def _take_over(self) -> None:
+        """Read (or create) the run's cursor and fence off any previous writer."""
+        try:
+            with self.db.engine.begin() as conn:
+                if conn.execute(select(Run.id).where(Run.id == self.run_id)).first() is None:
+                    raise UnknownRun(f"run {self.run_id} does not exist in {self.db.url}")
+                cur = conn.execute(select(FrameCursor.next_index, FrameCursor.batch_seq, FrameCursor.t_last)
+                                   .where(FrameCursor.run_id == self.run_id)).first()
+                last = conn.execute(select(FrameChunk.first_index, FrameChunk.count, FrameChunk.t_first,
+                                           FrameChunk.t_last).where(FrameChunk.run_id == self.run_id)
+                                    .order_by(FrameChunk.first_index.desc()).limit(1)).first()
+                stored_next = last.first_index + last.count if last else 0
+                if cur is None:
+                    conn.execute(insert(FrameCursor).values(run_id=self.run_id, next_index=stored_next, batch_seq=0,
+                                                            writer_token=self._token,
+                                                            t_last=last.t_last if last else None))
+                    next_index, seq = stored_next, 0
+                else:
+                    if cur.next_index != stored_next:
+                        raise StorageError(f"run {self.run_id}: frame cursor says next index {cur.next_index} "
+                                           f"but stored chunks end at {stored_next}")
+                    conn.execute(update(FrameCursor).where(FrameCursor.run_id == self.run_id)
+                                 .values(writer_token=self._token, updated_at=utcnow()))
+                    next_index, seq = cur.next_index, cur.batch_seq
+        except OperationalError as exc:
+            raise StorageUnavailable(f"run {self.run_id}: cannot open frame writer: {_short(exc)}") from None
+        self._next_index = next_index
+        self._committed_index = next_index
+        self._seq = seq
+        self._resume: tuple[float, int, float | None] | None = None
+        if last is not None:
+            rate = (last.count - 1) / (last.t_last - last.t_first) if last.t_last > last.t_first else None
+            self._resume = (last.t_last, next_index - 1, rate)
+
+    # ------------------------------------------------------------------ producer API
+    def add(self, frame: GyroFrame) -> int:
+        """Accept one frame; returns the index it gets."""
+        return self.add_many((frame,))
+
+    def add_many(self, frames: Iterable[GyroFrame]) -> int:
+        """Accept frames in order; returns the index of the last one (or next_index - 1)."""
+        with self._cond:
+            self._check_usable()
+            for frame in frames:
+                self._add_locked(frame)
+            if self._buffered_frames - len(self._open) >= self.flush_frames:
+                self._cond.notify_all()
+            return self._next_index - 1
+
+    def _add_locked(self, frame: GyroFrame) -> None:
+        size = len(frame.raw)
+        if self._expected_size is not None and size != self._expected_size:
+            raise codec.UnknownFrameKind(f"run {self.run_id}: a {self.frame_kind} frame must be "
+                                         f"{self._expected_size} bytes, got {size} (frame seq {frame.sequence})")
+        if self._buffered_frames >= self.max_buffered_frames:
+            raise BufferFull(f"run {self.run_id}: {self._buffered_frames} frames buffered and the database is "
+                             f"not taking them ({self._last_error or 'no error yet'})")
+        t = frame.host_time
+        if self._open:
+            first = self._open[0]
+            if len(first.raw) != size or abs(t - first.host_time) > codec.MAX_CHUNK_SPAN_S:
+                self._seal_locked()
+        if self._resume is not None:
+            t_from, after, rate = self._resume
+            rate = self.nominal_rate_hz or rate
+            missing = max(0, round((t - t_from) * rate) - 1) if rate else None
+            self._queue_row("gaps", {"run_id": self.run_id, "t_from": t_from, "t_to": t,
+                                     "reason": self._resume_reason, "frames_missing": missing, "after_index": after})
+            self._resume = None
+        elif self.sequence_modulus and self._prev_seq is not None:
+            self._check_sequence(frame)
+        self._prev_seq, self._prev_time = frame.sequence, t
+        self._open.append(frame)
+        self._next_index += 1
+        self._buffered_frames += 1
+        if len(self._open) >= self.chunk_frames:
+            self._seal_locked()
+
+    def _check_sequence(self, frame: GyroFrame) -> None:
+        mod = self.sequence_modulus
+        assert mod is not None and self._prev_seq is not None and self._prev_time is not None
+        if frame.sequence == (self._prev_seq + 1) % mod:
+            return
+        by_seq = (frame.sequence - self._prev_seq - 1) % mod
+        reason, missing = "sequence", by_seq
+        if self.nominal_rate_hz:
+            by_time = round((frame.host_time - self._prev_time) * self.nominal_rate_hz) - 1
+            if by_time >= mod:       # wrapped at least once: the counter alone cannot tell how often
+                missing = by_seq + mod * round((by_time - by_seq) / mod)
+            elif by_time < by_seq / 2:
+                reason, missing = "sequence_disorder", None
+        self._queue_row("gaps", {"run_id": self.run_id, "t_from": self._prev_time, "t_to": frame.host_time,
+                                 "reason": reason, "frames_missing": missing, "after_index": self._next_index - 1})
+
+    def record_gap(self, t_from: float, t_to: float, reason: str, frames_missing: int | None = None) -> None:
+        """Record a known outage (e.g. ``LinkStats.link_gaps``), written with the next batch."""
+        if not t_to >= t_from:
+            raise ValueError(f"gap t_to {t_to} is before t_from {t_from}")
+        with self._cond:
+            self._check_usable()
+            self._queue_row("gaps", {"run_id": self.run_id, "t_from": float(t_from), "t_to": float(t_to),
+                                     "reason": reason, "frames_missing": frames_missing,
+                                     "after_index": self._next_index - 1 if self._next_index else None})
+
+    def add_probe_readings(self, t: float, readings: Iterable[ProbeReading]) -> None:
+        with self._cond:
+            self._check_usable()
+            for r in readings:
+                self._queue_row("probe_readings", {"run_id": self.run_id, "t": float(t), "name": r.name,
+                                                   "serial": r.serial, "celsius": r.celsius, "fault": r.fault})
+
+    def add_chamber(self, t: float, status: ChamberStatus) -> None:
+        self.add_telemetry(t, "chamber", chamber_pv=status.pv_c, chamber_sp=status.setpoint_c,
+                           chamber_ramp_sp=status.ramp_setpoint_c, chamber_mode=status.mode,
+                           chamber_alarm=status.alarm)
+
+    def add_turntable(self, t: float, axes: Mapping[int, AxisState]) -> None:
+        cols: dict[str, Any] = {}
+        for axis, state in axes.items():
+            if axis not in (1, 2):
+                raise ValueError(f"turntable axis {axis}: telemetry stores axes 1 and 2 only")
+            cols[f"axis{axis}_pos"] = state.position_deg
+            cols[f"axis{axis}_rate"] = state.rate_dps
+        self.add_telemetry(t, "turntable", **cols)
+
+    def add_psu(self, t: float, volts: float | None, amps: float | None, on: bool | None) -> None:
+        self.add_telemetry(t, "psu", psu_volts=volts, psu_amps=amps, psu_on=on)
+
+    def add_telemetry(self, t: float, device: str, **values: Any) -> None:
+        table = Telemetry.__table__
+        unknown = [k for k in values if k not in table.c or k in ("id", "run_id", "t", "device")]
+        if unknown:
+            raise ValueError(f"telemetry has no column(s) {unknown}")
+        row = {c: None for c in table.c.keys() if c not in ("id",)}
+        row.update(values, run_id=self.run_id, t=float(t), device=device)
+        with self._cond:
+            self._check_usable()
+            self._queue_row("telemetry", row)
+
+    def add_event(self, kind: str, message: str, *, t_bench: float | None = None,
+                  data: dict[str, Any] | None = None) -> None:
+        with self._cond:
+            self._check_usable()
+            self._queue_row("events", {"run_id": self.run_id, "t_bench": t_bench, "wall_time": utcnow(),
+                                       "kind": kind, "message": message, "data": data})
+
+    def add_segment(self, kind: str, t_start: float, t_end: float, *, temperature_c: float | None = None,
+                    orientation: str | None = None, outer_deg: float | None = None,
+                    inner_deg: float | None = None, repetition: int = 0, step_index: int | None = None,
+                    labels: dict[str, Any] | None = None) -> None:
+        """A finished labelled segment (``bench.storage.queries.open_segment`` writes open ones directly)."""
+        if kind not in SEGMENT_KINDS:
+            raise ValueError(f"segment kind {kind!r} is not one of {SEGMENT_KINDS}")
+        with self._cond:
+            self._check_usable()
+            self._queue_row("segments", {"run_id": self.run_id, "step_index": step_index, "kind": kind,
+                                         "temperature_c": temperature_c, "orientation": orientation,
+                                         "outer_deg": outer_deg, "inner_deg": inner_deg, "repetition": repetition,
+                                         "t_start": float(t_start), "t_end": float(t_end), "labels": labels})
+
+    def _queue_row(self, table: str, row: dict[str, Any]) -> None:
+        if self._n_rows >= self.max_buffered_rows:
+            raise BufferFull(f"run {self.run_id}: {self._n_rows} rows buffered and the database is not taking "
+                             f"them ({self._last_error or 'no error yet'})")
+        self._rows[table].append(row)
+        self._n_rows += 1
+        self._rows_queued += 1
+
+    def _check_usable(self) -> None:
+        if self._fatal is not None:
+            raise self._fatal if isinstance(self._fatal, StorageError) else StorageError(
+                f"run {self.run_id}: frame writer stopped: {_short(self._fatal)}")
+        if self._closing or self._closed:
+            raise StorageError(f"run {self.run_id}: frame writer is closed")
+
+    # ------------------------------------------------------------------ sealing
+    def _seal_locked(self) -> None:
+        frames = self._open
+        if not frames:
+            return
+        self._open = []
+        n = len(frames)
+        times = np.fromiter((f.host_time for f in frames), np.float64, n)
+        gyro = np.array([f.gyro for f in frames], dtype=np.float64).reshape(n, 3)
+        accel = np.array([f.accel for f in frames], dtype=np.float64).reshape(n, 3)
+        temps = np.fromiter((math.nan if f.temperature_c is None else f.temperature_c for f in frames),
+                            np.float64, n)
+        has_freq = any(f.freq_hz is not None for f in frames)
+        freq = (np.array([f.freq_hz if f.freq_hz is not None else (math.nan,) * 3 for f in frames],
+                         dtype=np.float64).reshape(n, 3) if has_freq else None)
+        t_first, dt_us = codec.pack_times(times)
+        times = codec.unpack_times(t_first, dt_us)   # summarise the stored (1 us) times: re-derivable
+        chunk = _Chunk(first_index=self._next_index - n, count=n, t_first=t_first, t_last=float(times[-1]),
+                       kind=self.frame_kind, size=len(frames[0].raw), raw=b"".join([f.raw for f in frames]),
+                       dt_us=dt_us, temp_centi=codec.pack_temps(temps),
+                       summary=self._summarise(frames, times, gyro, accel, temps, freq))
+        self._chunks.append(chunk)
+
+    def _summarise(self, frames: list[GyroFrame], times: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+                   temps: np.ndarray, freq: np.ndarray | None) -> _Summary:
+        valid = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
+        if self.valid_status is not None:
+            status = np.fromiter((f.status for f in frames), np.int64, len(frames))
+            valid &= status == self.valid_status
+        seconds = np.floor(times).astype(np.int64)
+        uniq, inv = np.unique(seconds, return_inverse=True)
+
+        def total(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+            return np.bincount(inv, weights=np.where(mask, values, 0.0), minlength=uniq.size)
+
+        cols = {"n": np.bincount(inv, weights=valid.astype(np.float64), minlength=uniq.size),
+                "n_invalid": np.bincount(inv, weights=(~valid).astype(np.float64), minlength=uniq.size),
+                "sum_dt": total(times - seconds, valid)}
+        for i, axis in enumerate("xyz"):
+            cols[f"sum_g{axis}"] = total(gyro[:, i], valid)
+            cols[f"sum_a{axis}"] = total(accel[:, i], valid)
+        temp_ok = np.isfinite(temps)
+        cols["n_temp"] = np.bincount(inv, weights=temp_ok.astype(np.float64), minlength=uniq.size)
+        cols["sum_temp"] = total(temps, temp_ok)
+        if freq is not None:
+            for i, axis in enumerate("xyz"):
+                cols[f"sum_f{axis}"] = total(freq[:, i], valid & np.isfinite(freq[:, i]))
+        return _Summary(uniq, cols, freq is not None)
+
+    # ------------------------------------------------------------------ writing
+    MAX_BATCH_CHUNKS = 500
+    MAX_BATCH_ROWS = 50_000
+
+    def _take_batch_locked(self, seal_open: bool) -> _Batch:
+        """The batch to write next: the failed one again if any (its commit may have gone through),
+        else a prefix of what is buffered."""
+        if self._inflight is not None:
+            return self._inflight
+        if seal_open:
+            self._seal_locked()
+        return _Batch(chunks=self._chunks[:self.MAX_BATCH_CHUNKS],
+                      rows={k: v[:self.MAX_BATCH_ROWS] for k, v in self._rows.items()}, seq=self._seq + 1)
+
+    def _write(self, batch: _Batch) -> None:
+        with self.db.engine.begin() as conn:
+            values: dict[str, Any] = {"batch_seq": batch.seq, "updated_at": utcnow()}
+            if batch.chunks:
+                last = batch.chunks[-1]
+                values.update(next_index=last.first_index + last.count, t_last=last.t_last)
+            res = conn.execute(update(FrameCursor).where(FrameCursor.run_id == self.run_id,
+                                                         FrameCursor.writer_token == self._token).values(**values))
+            if res.rowcount != 1:
+                raise WriterFenced(f"run {self.run_id}: another frame writer has taken this run over; "
+                                   f"{batch.frames} frames of this writer were not stored")
+            if batch.chunks:
+                conn.execute(insert(FrameChunk), [c.row(self.run_id) for c in batch.chunks])
+                summary = _Summary.merge([c.summary for c in batch.chunks])
+                conn.execute(self._seconds_upsert(conn.dialect.name), summary.rows(self.run_id))
+            for name, rows in batch.rows.items():
+                if rows:
+                    conn.execute(insert(_ROW_TABLES[name]), rows)
+
+    @staticmethod
+    def _seconds_upsert(dialect: str):
+        if dialect == "postgresql":
+            from sqlalchemy.dialects.postgresql import insert as dialect_insert
+        else:
+            from sqlalchemy.dialects.sqlite import insert as dialect_insert
+        table = FrameSecond.__table__
+        stmt = dialect_insert(table)
+        return stmt.on_conflict_do_update(index_elements=["run_id", "second"],
+                                          set_={c: table.c[c] + stmt.excluded[c] for c in _SUM_COLUMNS})
+
+    def _committed_by_server(self, batch: _Batch) -> bool:
+        """After a failure: did the batch commit anyway (reply lost)?  Raises if fenced or unreachable."""
+        with self.db.engine.connect() as conn:
+            cur = conn.execute(select(FrameCursor.batch_seq, FrameCursor.writer_token)
+                               .where(FrameCursor.run_id == self.run_id)).first()
+        if cur is None or cur.writer_token != self._token:
+            raise WriterFenced(f"run {self.run_id}: another frame writer has taken this run over")
+        return cur.batch_seq >= batch.seq
+
+    def _done_locked(self, batch: _Batch) -> None:
+        del self._chunks[:len(batch.chunks)]
+        for name, rows in batch.rows.items():
+            del self._rows[name][:len(rows)]
+            self._n_rows -= len(rows)
+            self._rows_committed += len(rows)
+        self._inflight = None
+        self._buffered_frames -= batch.frames
+        self._committed_frames += batch.frames
+        if batch.chunks:
+            last = batch.chunks[-1]
+            self._committed_index = last.first_index + last.count
+        self._seq = batch.seq
+        self._last_commit_wall = time.time()
+        self._cond.notify_all()
+
+    def _attempt(self, batch: _Batch) -> None:
+        """Write ``batch`` once; on success mark it done.  On a transient failure the batch is kept
+        as in flight and re-raised; any other failure makes the writer unusable."""
+        if batch.empty:
+            return
+        try:
+            if not (batch is self._inflight and self._committed_by_server(batch)):
+                self._write(batch)
+        except Exception as exc:          # noqa: BLE001 - classified here
+            if _is_transient(exc):
+                with self._cond:
+                    self._inflight = batch
+                self._note_failure(exc)
+            else:
+                self._set_fatal(exc)
+            raise
+        with self._cond:
+            self._done_locked(batch)
+
+    def _note_failure(self, exc: BaseException) -> None:
+        with self._cond:
+            self._retries += 1
+            self._last_error = _short(exc)
+            self._last_error_wall = time.time()
+            self._cond.notify_all()
+        log.warning("run %s: frame batch not written (%s); retrying", self.run_id, self._last_error)
+
+    def _set_fatal(self, exc: BaseException) -> None:
+        with self._cond:
+            self._fatal = exc
+            self._last_error = _short(exc)
+            self._last_error_wall = time.time()
+            self._cond.notify_all()
+        log.error("run %s: frame writer stopped: %s", self.run_id, self._last_error)
+
+    def _due_locked(self) -> bool:
+        if self._closing or self._flush_requested:
+            return True
+        if self._buffered_frames - len(self._open) >= self.flush_frames:
+            return True
+        has_data = self._buffered_frames or self._n_rows
+        return bool(has_data) and time.monotonic() - self._last_flush_mono >= self.flush_interval_s
+
+    def _run(self) -> None:
+        backoff = self.retry_initial_s
+        while True:
+            with self._cond:
+                while not self._abandoned and self._inflight is None and not self._due_locked():
+                    wait = self.flush_interval_s - (time.monotonic() - self._last_flush_mono)
+                    self._cond.wait(timeout=max(wait, 0.01) if (self._buffered_frames or self._n_rows) else
+                                    self.flush_interval_s)
+                if self._abandoned:
+                    return
+                timed = time.monotonic() - self._last_flush_mono >= self.flush_interval_s
+                batch = self._take_batch_locked(seal_open=timed or self._flush_requested or self._closing)
+                self._last_flush_mono = time.monotonic()
+                if batch.empty:
+                    self._flush_requested = False
+                    self._cond.notify_all()
+                    if self._closing:
+                        return
+                    continue
+            try:
+                self._attempt(batch)
+                backoff = self.retry_initial_s
+            except Exception as exc:          # noqa: BLE001 - _attempt classified and recorded it
+                if not _is_transient(exc):
+                    return
+                with self._cond:
+                    if not self._abandoned:
+                        self._cond.wait(timeout=backoff)
+                backoff = min(backoff * 2, self.retry_max_s)
+
+    # ------------------------------------------------------------------ control
+    def flush(self, timeout: float | None = 30.0) -> None:
+        """Write everything accepted so far (including the open chunk) and wait until committed.
+
+        Raises ``StorageUnavailable`` if that does not happen within ``timeout`` wall seconds (the data
+        stays buffered and is retried), or the writer's fatal error.
+        """
+        if self._thread is None:
+            while True:
+                with self._cond:
+                    self._check_usable()
+                    batch = self._take_batch_locked(seal_open=True)
+                if batch.empty:
+                    return
+                try:
+                    self._attempt(batch)
+                except Exception as exc:          # noqa: BLE001
+                    if _is_transient(exc):
+                        raise StorageUnavailable(f"run {self.run_id}: batch not written: {_short(exc)}") from None
+                    raise
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            target, rows_target = self._next_index, self._rows_queued
+            self._flush_requested = True
+            self._cond.notify_all()
+            while not (self._committed_index >= target and self._rows_committed >= rows_target):
+                if self._fatal is not None:
+                    self._check_usable()
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    raise StorageUnavailable(f"run {self.run_id}: {self._buffered_frames} frames and {self._n_rows} "
+                                             f"rows still buffered after {timeout} s ({self._last_error})")
+                self._cond.wait(timeout=min(remaining, 1.0) if remaining is not None else 1.0)
+
+    def close(self, timeout: float | None = 60.0) -> None:
+        """Flush everything and stop the background thread.  Raises like ``flush`` when data is left."""
+        if self._closed:
+            return
+        if self._thread is None:
+            self.flush()
+            self._closed = True
+            return
+        self.flush(timeout)
+        with self._cond:
+            self._closing = True
+            self._cond.notify_all()
+        self._thread.join(timeout)
+        self._closed = True
+
+    def abandon(self) -> int:
+        """Stop at once without writing what is buffered (what a crash does); returns the frames lost."""
+        with self._cond:
+            self._abandoned = True
+            lost = self._buffered_frames
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(10)
+        self._closed = True
+        return lost
+
+    def status(self) -> WriterStatus:
+        with self._cond:
+            return WriterStatus(run_id=self.run_id, next_index=self._next_index,
+                                committed_frames=self._committed_frames, committed_index=self._committed_index,
+                                buffered_frames=self._buffered_frames, buffered_rows=self._n_rows,
+                                retries=self._retries, last_error=self._last_error,
+                                last_error_wall=self._last_error_wall, last_commit_wall=self._last_commit_wall,
+                                fatal=_short(self._fatal) if self._fatal else None, closed=self._closed)
+
+    def __enter__(self) -> "FrameWriter":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            try:
+                self.close(timeout=10)
+            except StorageError:
+                log.exception("run %s: frame writer could not flush while handling %s", self.run_id, exc_type)

@@ -1,0 +1,48 @@
+"""S000 3.3 dynamic test: soak at +40 C, power on, ramp -1 C/min to -30 C, hold 20 min.
+
+"The system stands in the chamber in position 北天东 (NUE); the chamber starts at +40 C and soaks
+for several hours; 10 min after the system is powered the chamber goes from +40 C to -30 C at
+-1 C/min, then holds 20 min; the gyro outputs and temperature sensors are recorded throughout."
+
+Recorded phases: ``warmup`` (the 10 min after power-on), ``ramp`` and ``cold_hold``; the dynamic
+model (temperature, gradient and rate terms) is fitted at the end.  ``soak_h`` default 4 h stands
+for the paper's "several hours".
+"""
+from __future__ import annotations
+
+from pydantic import Field
+
+from bench.engine import Fit, GyroPower, Orient, Plan, Ramp, SetChamber, Soak
+from procedures.common import _Params
+
+NAME = "thermal_ramp"
+DESCRIPTION = ("S000 3.3 dynamic test at NUE: soak +40 C, power on, 10 min, ramp -1 C/min to -30 C, "
+               "hold 20 min, recording throughout; dynamic model fit")
+
+
+class Params(_Params):
+    orientation: str = "NUE"
+    start_c: float = 40.0
+    soak_h: float = Field(4.0, gt=0)
+    warmup_min: float = Field(10.0, gt=0)
+    rate_c_per_min: float = Field(1.0, gt=0)
+    end_c: float = -30.0
+    final_hold_min: float = Field(20.0, gt=0)
+    fit_models: list[str] = Field(default_factory=lambda: ["dynamic"])
+
+
+def build(params: Params | None = None) -> Plan:
+    p = params or Params()
+    rec = {"set": "dynamic", "position": p.orientation}
+    steps = [
+        Orient(code=p.orientation),
+        SetChamber(setpoint_c=p.start_c),
+        Soak(duration_s=p.soak_h * 3600.0),
+        GyroPower(on=True),
+        Soak(duration_s=p.warmup_min * 60.0, record={**rec, "phase": "warmup"}),
+        Ramp(target_c=p.end_c, rate_c_per_min=p.rate_c_per_min, record={**rec, "phase": "ramp"}),
+        Soak(duration_s=p.final_hold_min * 60.0, record={**rec, "phase": "cold_hold"}),
+        GyroPower(on=False),
+        Fit(models=p.fit_models, options={"procedure": NAME}),
+    ]
+    return Plan(name=NAME, steps=steps, params=p.model_dump(mode="json"))
