@@ -7,6 +7,10 @@ for several hours; 10 min after the system is powered the chamber goes from +40 
 Recorded phases: ``warmup`` (the 10 min after power-on), ``ramp`` and ``cold_hold``; the dynamic
 model (temperature, gradient and rate terms) is fitted at the end.  ``soak_h`` default 4 h stands
 for the paper's "several hours".
+
+NUE keeps the gyro's y axis vertical, so the gyro must be mounted with x (or z) on the table's inner
+axis; with the eight-position mounting (y on the inner axis) plan validation refuses NUE and names
+the reachable codes.  ``orientation=None`` leaves the table where it is.
 """
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ DESCRIPTION = ("S000 3.3 dynamic test at NUE: soak +40 C, power on, 10 min, ramp
 
 
 class Params(_Params):
-    orientation: str = "NUE"
+    orientation: str | None = "NUE"      # None: leave the table where it is
     start_c: float = 40.0
     soak_h: float = Field(4.0, gt=0)
     warmup_min: float = Field(10.0, gt=0)
@@ -33,9 +37,9 @@ class Params(_Params):
 
 def build(params: Params | None = None) -> Plan:
     p = params or Params()
-    rec = {"set": "dynamic", "position": p.orientation}
-    steps = [
-        Orient(code=p.orientation),
+    rec = {"set": "dynamic", **({"position": p.orientation} if p.orientation else {})}
+    steps = [Orient(code=p.orientation)] if p.orientation else []
+    steps += [
         SetChamber(setpoint_c=p.start_c),
         Soak(duration_s=p.soak_h * 3600.0),
         GyroPower(on=True),

@@ -15,7 +15,7 @@ from bench.fit.effects import first_order_lag, relay_state
 DT = 2.0
 PROBE_TAUS = {"t1": 600.0, "t2": 900.0, "t3": 1500.0, "t4": 2400.0}
 STATIC = (0.10, 0.02, 4e-4, 6e-6)       # A0..A3 about 25 C, deg/h
-NOISE_DPH = 0.08                        # white noise per 2-s sample
+NOISE_DPH = 0.08                        # white noise per sample
 
 
 def chamber_profile(segments, start_c=25.0, dt=DT):
@@ -44,12 +44,12 @@ VALIDATE_PROFILE = [("hold", 1800), ("ramp", -10, 0.7), ("hold", 7200), ("ramp",
                     ("ramp", 10, 0.3), ("hold", 5400), ("ramp", 40, 1.2), ("hold", 3600)]
 
 
-def make_run(profile, hidden: dict | None = None, seed: int = 0, power_cycles: int = 0, probes=PROBE_TAUS,
+def make_run(profile, hidden: dict | None = None, seed: int = 0, power_cycles: int = 0, probes=PROBE_TAUS, dt=DT,
              positions: tuple[str, ...] = ("NUE",), table_rate_dps: float = 0.0) -> tuple[Dataset, np.ndarray]:
     """Returns the dataset and the true hidden-effect contribution (deg/h) on channel x."""
     hidden = hidden or {}
     rng = np.random.default_rng(seed)
-    t, air = chamber_profile(profile)
+    t, air = chamber_profile(profile, dt=dt)
     n = len(t)
     cols: dict[str, np.ndarray] = {"time_s": t, "chamber_pv": air}
     for name, tau in probes.items():
@@ -111,4 +111,4 @@ def make_run(profile, hidden: dict | None = None, seed: int = 0, power_cycles: i
         extra += hidden["cross_channel_temperature"] * (0.5 * v + 0.03 * v ** 2 + 1e-3 * v ** 3)
     y = bias + extra + rng.normal(0, NOISE_DPH, n)
     cols["gyro_x"] = y
-    return Dataset(cols, {"gyro_id": "SYN-1", "sample_period_s": str(DT)}), extra
+    return Dataset(cols, {"gyro_id": "SYN-1", "sample_period_s": str(dt)}), extra

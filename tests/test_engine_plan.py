@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.config import BenchConfig, ChamberConfig
+from bench.config import BenchConfig, ChamberConfig, TurntableConfig, TurntableGeometry
 from bench.engine import (Fit, GyroPower, Orient, Plan, Ramp, Record, SetChamber, Soak, TableRate,
                           WaitStable, WeakCorrelation, plan_summary, validate_plan)
 from bench.errors import PlanError
@@ -44,10 +44,11 @@ def test_chamber_limits_from_config_are_enforced():
 
 
 def test_unreachable_orientation_for_the_configured_table_is_refused():
-    # default geometry (inner axis East, mounting ENU) cannot put y along the vertical
+    # gyro x on the inner axis (inner axis East, mounting ENU): y can never point up
+    x_inner = BenchConfig(turntable=TurntableConfig(geometry=TurntableGeometry(inner_axis=(1.0, 0.0, 0.0))))
     with pytest.raises(PlanError, match="step 0 .*cannot reach USE"):
-        validate_plan(_plan(Orient(code="USE")), BenchConfig())
-    validate_plan(_plan(Orient(code="ESD")), BenchConfig())
+        validate_plan(_plan(Orient(code="USE")), x_inner)
+    validate_plan(_plan(Orient(code="ESD")), x_inner)
 
 
 def test_empty_plan_and_correlated_parts_are_refused():

@@ -47,6 +47,10 @@ def test_full_run_records_labelled_data_and_ends_in_safe_state():
     tel_t = [t for t, _ in run.telemetry]
     assert max(b - a for a, b in zip(tel_t, tel_t[1:])) <= 5.0 + 10.0
     assert sum(1 for a, b in zip(tel_t, tel_t[1:]) if b - a <= 5.0 + 1e-6) > 0.8 * len(tel_t)
+    last = run.telemetry[-1][1]
+    assert last["chamber"].pv_c == pytest.approx(bench.thermal.pv, abs=2.0) and set(last["turntable"]) == {1, 2}
+    assert any(v["psu"].on and v["psu"].volts == 28.0 for _, v in run.telemetry)
+    assert {s["kind"] for s in run.segments} == {"record", "ramp"}
     probe_t = sorted({t for t, _ in run.probes})
     assert max(b - a for a, b in zip(probe_t, probe_t[1:])) <= 2.0 + 10.0
     assert sum(1 for a, b in zip(probe_t, probe_t[1:]) if b - a <= 2.0 + 1e-6) > 0.6 * len(probe_t)

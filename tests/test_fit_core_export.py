@@ -9,7 +9,8 @@ import pytest
 from bench.errors import DataFormatError
 from bench.fit import models
 from bench.fit.base import Dataset
-from bench.fit.export import build_export, evaluate_model_doc, latest_export, load_export, save_export
+from bench.fit.export import (build_export, evaluate_model_doc, latest_export, load_export, results_from_export,
+                              save_export)
 from tests.test_fit_core_synth import CAL_PROFILE, VAL_PROFILE, thermal_run
 
 
@@ -50,6 +51,9 @@ def test_json_recipe_alone_reproduces_predict(fitted, tmp_path):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
         np.testing.assert_array_equal(got_flag, want_flag)
         assert want_flag.any()
+    # stored coefficients applied through the registry give the same numbers
+    for res, stored in zip(results, results_from_export(doc)):
+        np.testing.assert_array_equal(models.predict(stored, val)[0], models.predict(res, val)[0])
 
 
 def test_export_refuses_bad_ids_and_versions(fitted, tmp_path):

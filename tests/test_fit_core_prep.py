@@ -134,3 +134,14 @@ def test_bin_by_temperature_gives_equal_weight_per_bin():
     tm, (ym,), cnt = prep.bin_by_temperature(temp, y, bin_c=0.5)
     assert cnt[0] == 1000 and len(tm) == 21
     np.testing.assert_allclose(ym, tm * 2.0)
+
+
+def test_rate_filter_equals_savitzky_golay_first_derivative():
+    from scipy.signal import savgol_filter
+
+    rng = np.random.default_rng(4)
+    t = np.arange(5000.0) * 0.5
+    x = np.cumsum(rng.normal(0, 0.01, t.size)) + 25.0
+    ours = prep.rate_c_per_min(t, x, 60.0)                 # window 60 s = 121 samples at 2 Hz
+    ref = savgol_filter(x, 121, polyorder=2, deriv=1, delta=0.5, mode="interp") * 60.0
+    np.testing.assert_allclose(ours[60:-60], ref[60:-60], atol=1e-9)

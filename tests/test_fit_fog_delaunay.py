@@ -59,3 +59,15 @@ def test_degenerate_points_refused():
     data = Dataset({"time_s": np.arange(50) * 100.0, "temp_t1": np.full(50, 20.0), "gyro_x": np.zeros(50)})
     with pytest.raises(DataFormatError, match="fog_delaunay"):
         fit_fog_delaunay(data, "x", probe="t1")
+
+
+def test_registry_mode_nan_blanks_flagged_only():
+    train = startup_runs(13, rho_100s=0.5, sd=0.003, starts=(-10, 20, 50))
+    res = fit_fog_delaunay(train, "x", probe="t1")
+    hot_first_run = np.where(train["run"] == 0, 300.0, 0.0)
+    probe = train.with_columns(temp_t1=train["temp_t1"] + hot_first_run)
+    values, flagged = predict_fog_delaunay(res, probe, mode="nan")
+    assert flagged[hot_first_run > 0].all() and flagged[hot_first_run == 0].mean() < 0.5
+    assert np.isnan(values[flagged]).all() and np.isfinite(values[~flagged]).all()
+    with pytest.raises(DataFormatError, match="mode"):
+        predict_fog_delaunay(res, probe, mode="extrapolate")

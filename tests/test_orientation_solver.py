@@ -80,8 +80,8 @@ def test_body_to_level_composes_outer_then_inner_then_mounting():
     assert np.allclose(m[:, 2], N)
 
 
-def test_default_geometry_reaches_only_half_of_the_eight_positions():
-    geometry = TurntableGeometry()
+def test_inner_axis_along_east_with_enu_mount_reaches_only_half_of_the_eight_positions():
+    geometry = TurntableGeometry(inner_axis=(1.0, 0.0, 0.0), mounting="ENU")
     reachable = set(reachable_codes(geometry)) & set(EIGHT_POSITIONS)
     assert reachable == {"ESD", "WSU", "WND", "ENU"}
     with pytest.raises(OrientationError, match="'USE' is not reachable"):
@@ -90,10 +90,10 @@ def test_default_geometry_reaches_only_half_of_the_eight_positions():
 
 @pytest.mark.parametrize("geometry", [
     EIGHT_POSITION_GEOMETRY,
-    TurntableGeometry(mounting="SEU"),                        # default axes, gyro y on the inner axis
+    TurntableGeometry(inner_axis=(1.0, 0.0, 0.0), mounting="SEU"),   # inner along E, gyro y on it
     TurntableGeometry(inner_axis=(0.0, -1.0, 0.0), mounting="ENU"),
     TurntableGeometry(outer_axis=(0.0, 0.0, -1.0), inner_axis=(1.0, 0.0, 0.0), mounting="NWU"),
-], ids=["eight-position default", "SEU mount", "inner -N", "outer down, NWU mount"])
+], ids=["eight-position default", "inner E, SEU mount", "inner -N", "outer down, NWU mount"])
 def test_all_eight_positions_reachable_and_round_trip(geometry):
     for code in EIGHT_POSITIONS:
         outer, inner = angles_for(code, geometry)
@@ -147,3 +147,7 @@ def test_bad_geometry_is_refused():
         angles_for("ENU", TurntableGeometry(mounting="DNS"))
     with pytest.raises(OrientationError, match="rotation"):
         angles_for_matrix(np.diag([1.0, 1.0, -1.0]), EIGHT_POSITION_GEOMETRY)
+
+
+def test_bench_default_geometry_is_the_eight_position_one():
+    assert TurntableGeometry() == EIGHT_POSITION_GEOMETRY

@@ -7,12 +7,12 @@ import time
 
 import numpy as np
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.exc import OperationalError
 
 from bench.storage import (BufferFull, FrameWriter, StorageUnavailable, UnknownFrameKind, WriterFenced,
                            iter_frames, open_database, queries, read_frames, second_means)
-from bench.storage.models import FrameChunk, FrameSecond
+from bench.storage.models import FrameChunk
 from tests.test_storage_support import db, kvh_a_frame, make_frames, run_id  # noqa: F401 - fixtures
 
 
@@ -191,9 +191,7 @@ def test_a_lost_commit_reply_does_not_duplicate_the_batch(db, run_id):
     w.add_many(frames[500:])
     w.close()
     assert np.array_equal(_stored_indexes(db, run_id), np.arange(800))
-    with db.engine.connect() as conn:
-        n = conn.execute(select(func.sum(FrameSecond.n)).where(FrameSecond.run_id == run_id)).scalar_one()
-    assert n == 800                                  # per-second sums not double-counted either
+    assert second_means(db, run_id).n.sum() == 800   # per-second sums not double-counted either
 
 
 def test_a_second_writer_fences_off_the_first(db, run_id):
@@ -252,3 +250,18 @@ def test_concurrent_producer_and_reader(db, run_id):
         t.join()
     assert seen == sorted(seen)                      # a reader only ever sees whole, growing prefixes
     assert np.array_equal(_stored_indexes(db, run_id), np.arange(4000))
+
+
+def test_resonator_frequencies_are_summarised_and_frames_without_them_left_out(db, run_id):
+    base = make_frames(400, rate_hz=100.0, t0=1_700_000_000.0)
+    frames = []
+    for k, f in enumerate(base):
+        freq = None if k == 5 else (5000.0 + 0.01 * k, 5001.0, 5002.0)
+        frames.append(type(f)(f.host_time, f.sequence, f.gyro, f.accel, f.status, f.temperature_c, f.raw, freq))
+    with FrameWriter(db, run_id, autostart=False) as w:
+        w.add_many(frames)
+    sm = second_means(db, run_id)
+    assert sm.freq_hz is not None and list(sm.n[:2]) == [99, 100] and sm.n_invalid[0] == 1
+    expected = np.mean([5000.0 + 0.01 * k for k in range(100) if k != 5])
+    assert sm.freq_hz[0, 0] == pytest.approx(expected, abs=1e-9)
+    assert np.allclose(sm.freq_hz[:, 1], 5001.0)

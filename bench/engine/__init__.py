@@ -11,11 +11,11 @@ from bench.engine.planning import (part_correlation, plan_summary, setpoint_limi
                                    validate_plan)
 from bench.engine.steps import (Fit, GyroPower, Orient, Plan, Ramp, Record, SetChamber, Soak, Step,
                                 TableRate, WaitStable, WeakCorrelation)
-from bench.engine.store import RunStore
+from bench.engine.store import PsuReading, RunStore
 
 __all__ = [
     "COMMANDS", "Control", "Devices", "Engine", "EngineConfig", "Fit", "FitHook", "GyroPower",
-    "HardwareState", "MemoryRunStore", "NoControl", "Orient", "Plan", "QueueControl", "Ramp", "Record",
+    "HardwareState", "MemoryRunStore", "NoControl", "Orient", "Plan", "PsuReading", "QueueControl", "Ramp", "Record",
     "RunStore", "SetChamber", "Soak", "Step", "StepFailed", "TableRate", "WaitStable", "WeakCorrelation",
     "check_orientation", "orientation_problem", "part_correlation", "plan_summary", "setpoint_limits",
     "setpoint_profile", "validate_plan",

@@ -7,8 +7,9 @@ suspended), checkpoint when due, sleep until the next tick.  The tick is adaptiv
 recording / ramping / waiting for stability / moving, ``max_tick_s`` in plain soaks, shortened to
 land on a step's end; data is drained on every tick.
 
-Control: ``stop`` finishes the current recording step (stops at once in any other step, or when
-paused / suspended), then safe state; ``abort`` goes to safe state now; ``pause``/``resume``.
+Control: ``stop`` (status "stopping") finishes the current recording step (stops at once in any
+other step, or when paused / suspended), then safe state, final status "stopped"; ``abort`` goes to
+safe state now ("aborted"); ``pause``/``resume``.  Errors end the run as "failed" (safe state too).
 
 Suspension: any condition from ``Acquisition.conditions`` suspends the run (the step's clock stops,
 a ramp is held, the recording piece ends); once every condition has been clear for ``settle_s``
@@ -312,6 +313,8 @@ class Engine:
             raise RunEnded("aborted", "abort requested")
         if command == "stop":
             self.stop_requested = True
+            if self.status == "running":
+                self._status("stopping", now)
         elif command == "pause" and not self.paused:
             self.paused = True
             self._status("paused", now)

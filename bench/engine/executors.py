@@ -77,7 +77,7 @@ class StepExecutor:
         if self.labels is None:
             return
         for k, (t_from, t_to) in enumerate(self.pieces):
-            self.eng.store.add_segment(self.eng.run_id, self.index, t_from, t_to,
+            self.eng.store.add_segment(self.eng.run_id, self.index, self.step.kind, t_from, t_to,
                                        {**self.labels, "piece": k, "complete": complete})
 
     def state(self, now: float) -> dict[str, Any]:
@@ -237,8 +237,18 @@ class WaitStableExec(StepExecutor):
 
     def begin(self, now: float) -> None:
         self.stable_since: float | None = None
+        self._checked: tuple[int, float | None] | None = None
+        self._last_ok = False
 
     def _stable_now(self, now: float) -> bool:
+        """Evaluated only when new probe or chamber data arrived since the last check."""
+        key = (self.eng.acq.probe_reads, self.eng.acq.status_t)
+        if key != self._checked:
+            self._checked = key
+            self._last_ok = self._evaluate(now)
+        return self._last_ok
+
+    def _evaluate(self, now: float) -> bool:
         eng, step = self.eng, self.step
         sp = eng.hw.chamber_setpoint_c
         status = eng.acq.status
@@ -279,6 +289,7 @@ class WaitStableExec(StepExecutor):
 
     def on_release(self, now: float) -> None:
         self.stable_since = None
+        self._checked = None
 
 
 class OrientExec(StepExecutor):

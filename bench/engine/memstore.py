@@ -7,7 +7,8 @@ import threading
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-from bench.interfaces import GyroFrame, ProbeReading
+from bench.engine.store import PsuReading
+from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
 
 
 @dataclass
@@ -88,13 +89,15 @@ class MemoryRunStore:
     def add_probe_readings(self, run_id: str, t: float, readings: Sequence[ProbeReading]) -> None:
         self._run(run_id).probes.extend((t, r) for r in readings)
 
-    def add_telemetry(self, run_id: str, t: float, values: dict[str, Any]) -> None:
-        self._run(run_id).telemetry.append((t, copy.deepcopy(values)))
+    def add_telemetry(self, run_id: str, t: float, chamber: ChamberStatus | None,
+                      turntable: dict[int, AxisState] | None, psu: PsuReading | None) -> None:
+        self._run(run_id).telemetry.append((t, {"chamber": chamber, "turntable": dict(turntable or {}) or None,
+                                                "psu": psu}))
 
-    def add_segment(self, run_id: str, step_index: int, t_from: float, t_to: float,
+    def add_segment(self, run_id: str, step_index: int, kind: str, t_from: float, t_to: float,
                     labels: dict[str, Any]) -> None:
-        self._run(run_id).segments.append(
-            {"step_index": step_index, "t_from": t_from, "t_to": t_to, "labels": copy.deepcopy(labels)})
+        self._run(run_id).segments.append({"step_index": step_index, "kind": kind, "t_from": t_from,
+                                           "t_to": t_to, "labels": copy.deepcopy(labels)})
 
     def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
         self._run(run_id).gaps.append({"t_from": t_from, "t_to": t_to, "reason": reason})

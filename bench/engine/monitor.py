@@ -9,16 +9,17 @@ with a human-readable reason.  Nothing here commands hardware.
 from __future__ import annotations
 
 import collections
-from typing import Any, Callable
+import itertools
+from typing import Callable
 
 import numpy as np
 
 from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices
-from bench.engine.store import RunStore
+from bench.engine.store import PsuReading, RunStore
 from bench.errors import DeviceError
-from bench.interfaces import ChamberStatus, GyroFrame
+from bench.interfaces import AxisState, ChamberStatus, GyroFrame
 
 LogFn = Callable[..., None]
 HISTORY_S = 3600.0   # probe history kept for stability checks
@@ -46,6 +47,7 @@ class Acquisition:
         self.probe_hist: dict[str, collections.deque[tuple[float, float]]] = {}
         self.probe_bad: dict[str, int] = {}
         self.probe_read_failures = 0
+        self.probe_reads = 0          # successful reads so far (lets checks skip unchanged data)
         self.conditions: dict[str, str] = {}
         self.outer_axis = config.turntable.geometry.outer_axis_number
         self.inner_axis = config.turntable.geometry.inner_axis_number
@@ -120,6 +122,7 @@ class Acquisition:
                 self._set("probes_link", f"probes unreadable ({self.probe_read_failures} reads): {exc}")
             return
         self.probe_read_failures = 0
+        self.probe_reads += 1
         self._set("probes_link", None)
         self.store.add_probe_readings(self.run_id, now, readings)
         by_name = {r.name: r for r in readings}
@@ -150,13 +153,14 @@ class Acquisition:
         hist = self.probe_hist.get(name)
         if not hist or hist[0][0] > now - 0.9 * window_s:
             return None
-        pts = [(t, c) for t, c in hist if t >= now - window_s]
+        start = now - window_s
+        pts = list(itertools.takewhile(lambda p: p[0] >= start, reversed(hist)))
         if len(pts) < 3:
             return None
-        t = np.fromiter((p[0] for p in pts), float)
-        c = np.fromiter((p[1] for p in pts), float)
-        slope = np.polyfit(t - t[0], c, 1)[0]
-        return float(slope * 60.0)
+        arr = np.asarray(pts, dtype=float)
+        t = arr[:, 0] - arr[:, 0].mean()
+        slope = float(np.dot(t, arr[:, 1] - arr[:, 1].mean()) / np.dot(t, t))
+        return slope * 60.0
 
     # ---- telemetry ----------------------------------------------------------------------------
     def read_chamber(self, now: float) -> ChamberStatus | None:
@@ -172,28 +176,24 @@ class Acquisition:
         return status
 
     def read_telemetry(self, now: float) -> None:
-        values: dict[str, Any] = {}
         status = self.read_chamber(now)
-        if status is not None:
-            values.update(chamber_pv_c=status.pv_c, chamber_sp_c=status.setpoint_c,
-                          chamber_ramp_sp_c=status.ramp_setpoint_c, chamber_mode=status.mode,
-                          chamber_alarm=status.alarm, chamber_input_error=status.input_error,
-                          chamber_power=status.power_on)
+        table: dict[int, AxisState] | None = {}
         try:
-            for name, axis in (("outer", self.outer_axis), ("inner", self.inner_axis)):
-                state = self.devices.turntable.read(axis)
-                values[f"table_{name}_deg"] = state.position_deg
-                values[f"table_{name}_dps"] = state.rate_dps
+            for axis in (self.outer_axis, self.inner_axis):
+                table[axis] = self.devices.turntable.read(axis)
         except DeviceError as exc:
             self._set("table_link", f"turntable link down: {exc}")
+            table = None
         else:
             self._set("table_link", None)
+        psu_reading: PsuReading | None
         try:
             psu = self.devices.psu
-            values.update(psu_on=psu.output_state(), psu_v=psu.measure_voltage(), psu_a=psu.measure_current())
+            psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
         except DeviceError as exc:
             self._set("psu_link", f"power supply link down: {exc}")
+            psu_reading = None
         else:
             self._set("psu_link", None)
-        if values:
-            self.store.add_telemetry(self.run_id, now, values)
+        if status is not None or table or psu_reading is not None:
+            self.store.add_telemetry(self.run_id, now, status, table, psu_reading)

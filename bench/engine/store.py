@@ -11,14 +11,28 @@ Contract notes
   returns the last one (or None).  The checkpoint holds the plan position, the step's own state
   (elapsed time...), the commanded hardware state and progress (see ``Engine`` for the layout).
 - ``open_suspension`` returns an id that ``close_suspension`` takes back.
-- Run status values: running, paused, suspended, completed, stopped, aborted, failed.
+- ``add_telemetry``: any of chamber / turntable ({axis number: AxisState}) / psu may be None when
+  that device could not be read at that time.
+- ``add_segment``: ``kind`` is the step kind that produced it (record, soak, ramp, wait_stable);
+  ``labels`` holds the procedure's labels (temperature_c, position, repetition, set, phase...) plus
+  ``piece`` (0, 1... when a pause, suspension or crash split the step) and ``complete``.
+- Run status values: running, paused, suspended, stopping, completed, stopped, aborted, failed
+  ("stopped" = ended early on an operator stop, after finishing the current recording).
 - Step status values: running, done, skipped, stopped, aborted, failed.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Protocol, Sequence
 
-from bench.interfaces import GyroFrame, ProbeReading
+from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
+
+
+@dataclass(frozen=True)
+class PsuReading:
+    volts: float
+    amps: float
+    on: bool
 
 
 class RunStore(Protocol):
@@ -44,9 +58,10 @@ class RunStore(Protocol):
 
     def add_probe_readings(self, run_id: str, t: float, readings: Sequence[ProbeReading]) -> None: ...
 
-    def add_telemetry(self, run_id: str, t: float, values: dict[str, Any]) -> None: ...
+    def add_telemetry(self, run_id: str, t: float, chamber: ChamberStatus | None,
+                      turntable: dict[int, AxisState] | None, psu: PsuReading | None) -> None: ...
 
-    def add_segment(self, run_id: str, step_index: int, t_from: float, t_to: float,
+    def add_segment(self, run_id: str, step_index: int, kind: str, t_from: float, t_to: float,
                     labels: dict[str, Any]) -> None: ...
 
     def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None: ...

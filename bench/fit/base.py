@@ -3,7 +3,7 @@
 A *dataset* is a ``Dataset``: named 1-D float arrays of equal length (``time_s``, ``gyro_x``,
 ``temp_t1``, ``freq_x``, ``orientation`` (array of str), ...) plus metadata from the CSV header.
 
-Every model fit returns a ``FitResult``; ``bench.fit.evaluate.predict(result, dataset)`` evaluates it
+Every model fit returns a ``FitResult``; ``bench.fit.catalog.predict(result, dataset)`` evaluates it
 on new data and returns the predicted bias and a boolean ``flagged`` array (outside the validity
 range: clipped or refused, never silently extrapolated).
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-EARTH_RATE_DPH = 15.041067  # 7.2921158553e-5 rad/s in deg/h
+EARTH_RATE_DPH = 7.2921158553e-5 * 180.0 / 3.141592653589793 * 3600.0  # WGS-84 Omega_ie, deg/h
 
 
 @dataclass

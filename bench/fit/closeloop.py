@@ -36,6 +36,7 @@ DBIC_MIN = 10.0
 MIN_VALIDATION_GAIN = 0.05
 STRUCTURE_RATIO = 1.5
 MAX_EFFECTS = 4
+AMBIGUOUS_DBIC = 10.0       # a runner-up this close to the winner is reported as indistinguishable
 
 
 @dataclass
@@ -269,6 +270,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     return {
         "declared_model": declared_name,
         "declared_terms": list(design.names),
+        "primary_probe": ctx.primary_probe,
+        "rate_window_s": ctx.rate_window_s,
         "noise_floor_dph": noise_floor,
         "before": before,
         "after": after,
@@ -351,6 +354,11 @@ def _findings(declared, before, after, added, structure, verdict, floor) -> str:
         lines.append(f"{i}. Added {e['kind']}" + (f" ({params})" if params else "") +
                      f": delta-BIC {e['evidence']['delta_bic']:.1f}, HAC Wald p {e['evidence']['hac_wald_p']:.2g}; "
                      f"validation std100 now {e['validation_std100_dph']:.4g} deg/h.")
+        runner = e["evidence"].get("runner_up")
+        if runner and e["evidence"]["delta_bic"] - runner["delta_bic"] < AMBIGUOUS_DBIC:
+            lines.append(f"   {runner['kind']} explains this residual almost as well (delta-BIC "
+                         f"{runner['delta_bic']:.1f}): this data cannot tell the two apart; a run with a "
+                         f"different ramp pattern would.")
     st = structure["validation"] if structure["validation"].get("testable") else structure["train"]
     if verdict == "unexplained_structure_remains":
         parts = []

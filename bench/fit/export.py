@@ -31,6 +31,7 @@ Public API::
     save_export(doc, directory) -> Path
     load_export(path) -> dict
     latest_export(directory, gyro_id) -> Path | None
+    results_from_export(doc) -> list[FitResult]     (to apply stored coefficients with models.predict)
     evaluate_model_doc(model_doc, columns, time_s=None) -> (values, flagged)
 """
 from __future__ import annotations
@@ -239,3 +240,16 @@ def evaluate_model_doc(model_doc: dict[str, Any], columns: dict[str, np.ndarray]
         inside[finite] = inside_hull(ev["hull"], pts[finite])
         flagged |= ~inside
     return values, flagged
+
+
+def results_from_export(doc: dict[str, Any]) -> list[FitResult]:
+    """``FitResult`` objects of a loaded export document (for ``models.predict`` / ``compensate``)."""
+    out = []
+    for i, m in enumerate(doc.get("models", [])):
+        try:
+            out.append(FitResult(model=m["model"], channel=m["channel"], target=m["target"],
+                                 definition=m["definition"], coefficients=m["coefficients"], units=m["units"],
+                                 validity=m["validity"], stats=m.get("stats", {})))
+        except KeyError as exc:
+            raise DataFormatError(f"models[{i}] lacks {exc.args[0]!r}") from None
+    return out

@@ -12,15 +12,23 @@ then the rate by differencing the smoothed temperature):
 
   Validity of the tests on autocorrelated data (calibration-notes 4.1 and lesson 3): the default
   ``test="decimate"`` fits the full 12-term model once, estimates the lag-1 autocorrelation rho of its
-  residuals, and block-averages every run into blocks of k = ceil((1 + rho) / (1 - rho)) samples (the
-  AR(1) integrated autocorrelation time, i.e. about one point per noise correlation time, never
-  across a run boundary) before the entry/removal tests.  Chosen over HAC because on our synthetic
-  start-up runs (8 runs x 72 points, AR(1) rho = 0.8-0.9 per 100 s) Newey-West/Andrews HAC t-tests,
-  even with Kiefer-Vogelsang fixed-b critical values, rejected a true null ~15 % of the time at a
-  nominal 5 %, while block-averaged OLS tests stayed at 3-7 %.  ``test="hac"`` (statsmodels OLS with
-  cov_type HAC, maxlags = max(Newey-West floor(4 (n/100)^(2/9)), Andrews AR(1) plug-in)) and
-  ``test="ols"`` (plain p-values; NOT valid on autocorrelated data, kept to demonstrate the
-  problem) are available.  Final coefficients are refitted by OLS on all 100-s points.
+  residuals (per run), and block-averages every run into blocks of k = ceil((1 + rho) / (1 - rho))
+  points (the AR(1) integrated autocorrelation time, i.e. about one point per noise correlation time;
+  never across a run boundary; k is reduced if fewer than 3 points per candidate would remain)
+  before the OLS entry/removal t-tests.  Entry is Sidak-corrected over the m candidates tried at a
+  step (p_min < 1 - (1 - p_enter)^(1/m)), so the chance that *some* junk term enters a step stays
+  at p_enter; ``sidak=False`` gives MATLAB's per-candidate rule.
+
+  Why decimation and not HAC: on our synthetic start-up runs (8 runs x 72 100-s points, AR(1)
+  rho = 0.8-0.9 per 100 s) Newey-West/Andrews-bandwidth HAC t-tests (even with Kiefer-Vogelsang
+  fixed-b critical values) rejected a true null ~15 % of the time at nominal 5 % (plain OLS: 40-48 %),
+  block-averaged OLS tests 3-7 %.  Over 12 seeds (rho = 0.9) stepwise with decimation found the exact
+  true set 9 times with 3 junk entries in total; HAC: 4 times / 9 junk; plain OLS: 0 times / 41 junk.
+  Also available: ``test="hac"`` (statsmodels OLS cov_type="HAC", maxlags = max(Newey-West
+  floor(4 (n/100)^(2/9)), Andrews AR(1) plug-in)), ``test="prewhiten"`` (Cochrane-Orcutt
+  quasi-differencing with the same rho; similar to decimation on AR(1) noise) and ``test="ols"``
+  (plain p-values; NOT valid on autocorrelated data, kept to demonstrate the problem).
+  Final coefficients are refitted by OLS on all 100-s points.
 
 * ``fog_delaunay`` -- section 2.2: 2-D piecewise-linear interpolation of the bias over a Delaunay
   triangulation of selected (T, dT) points (eqs 13-19 are barycentric linear interpolation).  Point
@@ -30,7 +38,9 @@ then the rate by differencing the smoothed temperature):
   would give degenerate triangles).  Axes are rescaled to their ranges before triangulation
   (``rescale=True`` semantics; deg C and deg C/min are incommensurable).  Outside the convex hull the
   value is that of the nearest point of the hull boundary (linear along the nearest hull edge) and
-  the sample is flagged -- never NaN, never extrapolated.
+  the sample is flagged (unless within ``hull_tolerance`` = 1 % of the axis ranges, which absorbs the
+  difference between the per-sample smoothed inputs and the averaged fit points) -- never NaN,
+  never extrapolated.  The hull polygon is stored in ``validity["hull"]``.
 
 The time-series helpers at the top (run splitting, 100-s block averages, smoothed rate) are used
 by ``bench.fit.hrg`` and ``bench.fit.report`` as well.
@@ -273,7 +283,8 @@ def stepwise_select(x_c: np.ndarray, rate: np.ndarray, y: np.ndarray, segments: 
     """Bidirectional stepwise selection over the eq-6 candidates.  Returns selected terms,
     p-values of the final model (on the tested data), and the decimation used."""
     if test not in ("decimate", "prewhiten", "hac", "ols"):
-        raise DataFormatError(f"fog_stepwise: test must be 'decimate', 'hac' or 'ols', got {test!r}", column="test")
+        raise DataFormatError(f"fog_stepwise: test must be 'decimate', 'prewhiten', 'hac' or 'ols', got {test!r}",
+                              column="test")
     if not (0 < p_enter < p_remove < 1):
         raise DataFormatError(f"fog_stepwise: need 0 < p_enter < p_remove < 1, got {p_enter}, {p_remove}",
                               column="p_enter")
@@ -346,8 +357,8 @@ def _t0_default(T: np.ndarray) -> float:
 
 
 def fit_fog_stepwise(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
-    """Options: probe ("t1"), average_s (100), t0_c (mid-range), test ("decimate"|"hac"|"ols"),
-    p_enter (0.05), p_remove (0.10), candidates (subset of FOG_TERMS names)."""
+    """Options: probe ("t1"), average_s (100), t0_c (mid-range), test ("decimate"|"prewhiten"|"hac"|"ols"),
+    p_enter (0.05), p_remove (0.10), sidak (True), candidates (subset of FOG_TERMS names)."""
     where = f"fog_stepwise gyro_{channel}"
     temp_col = pick_temperature_column(dataset, opts.get("probe"), where)
     average_s = float(opts.get("average_s", 100.0))
@@ -445,7 +456,11 @@ def select_points(T: np.ndarray, rate: np.ndarray, y: np.ndarray, segments: list
 class DelaunaySurface:
     """Piecewise-linear bias surface over rescaled (T, dT/dt) with explicit out-of-hull handling."""
 
-    def __init__(self, points: np.ndarray, values: np.ndarray, centre: np.ndarray, scale: np.ndarray) -> None:
+    def __init__(self, points: np.ndarray, values: np.ndarray, centre: np.ndarray, scale: np.ndarray,
+                 tolerance: float = 0.0) -> None:
+        """``tolerance``: distance outside the hull, in rescaled units (fractions of the axis ranges),
+        still treated as inside (value from the hull boundary, not flagged)."""
+        self.tolerance = float(tolerance)
         self.points = np.asarray(points, float)
         self.values = np.asarray(values, float)
         self.centre = np.asarray(centre, float)
@@ -477,12 +492,15 @@ class DelaunaySurface:
         # points find_simplex accepts but the interpolator returns NaN for (round-off on an edge) and
         # points outside the hull: value of the nearest hull-boundary point.
         needs = ~inside | ~np.isfinite(values)
+        flagged = np.zeros(q.shape[0], bool)
         if needs.any():
-            values[needs] = self._nearest_boundary_value(q[needs])
-        return values, ~inside
+            values[needs], dist = self._nearest_boundary_value(q[needs])
+            flagged[needs] = ~inside[needs] & (dist > self.tolerance)
+        return values, flagged
 
-    def _nearest_boundary_value(self, q: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    def _nearest_boundary_value(self, q: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
         out = np.empty(q.shape[0])
+        out_dist = np.empty(q.shape[0])
         ab = self._b - self._a
         ab2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
         for start in range(0, q.shape[0], chunk):
@@ -493,11 +511,13 @@ class DelaunaySurface:
             e = np.argmin(dist, axis=1)
             tt = t[np.arange(e.size), e]
             out[start:start + chunk] = (1 - tt) * self._va[e] + tt * self._vb[e]
-        return out
+            out_dist[start:start + chunk] = np.sqrt(dist[np.arange(e.size), e])
+        return out, out_dist
 
 
 def fit_fog_delaunay(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
-    """Options: probe, average_s (100), stride (3), fast_fraction (0.1), grid (200)."""
+    """Options: probe, average_s (100), stride (3), fast_fraction (0.1), grid (200), hull_tolerance
+    (0.01 of the axis ranges: samples that close to the hull are not flagged)."""
     where = f"fog_delaunay gyro_{channel}"
     temp_col = pick_temperature_column(dataset, opts.get("probe"), where)
     average_s = float(opts.get("average_s", 100.0))
@@ -510,7 +530,8 @@ def fit_fog_delaunay(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
     lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
     centre = 0.5 * (lo + hi)
     scale = np.where(hi > lo, hi - lo, 1.0)
-    surface = DelaunaySurface(pts[:, :2], pts[:, 2], centre, scale)
+    tolerance = float(opts.get("hull_tolerance", 0.01))
+    surface = DelaunaySurface(pts[:, :2], pts[:, 2], centre, scale, tolerance)
     fitted, _ = surface(data["T"], data["rate"])
     resid = data["y"] - fitted
     return FitResult(
@@ -521,7 +542,7 @@ def fit_fog_delaunay(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
                        "boundary point, flagged",
             "source": "seed 004 section 2.2, eqs 13-19",
             "temperature_column": temp_col, "average_s": average_s,
-            "centre": centre.tolist(), "scale": scale.tolist(),
+            "centre": centre.tolist(), "scale": scale.tolist(), "hull_tolerance": tolerance,
             "points": pts.tolist(),                            # rows: T (C), dT/dt (C/min), bias (deg/h)
             "selection": {"stride": int(opts.get("stride", 3)), "fast_fraction": float(opts.get("fast_fraction", 0.1)),
                           "grid": int(opts.get("grid", 200))},
@@ -538,7 +559,8 @@ def fit_fog_delaunay(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
 def surface_from_result(result: FitResult) -> DelaunaySurface:
     d = result.definition
     pts = np.asarray(d["points"], float)
-    return DelaunaySurface(pts[:, :2], pts[:, 2], np.asarray(d["centre"]), np.asarray(d["scale"]))
+    return DelaunaySurface(pts[:, :2], pts[:, 2], np.asarray(d["centre"]), np.asarray(d["scale"]),
+                           float(d.get("hull_tolerance", 0.0)))
 
 
 def predict_fog_delaunay(result: FitResult, dataset: Dataset, **opts: Any) -> tuple[np.ndarray, np.ndarray]:

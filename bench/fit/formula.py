@@ -291,24 +291,43 @@ def leaves(node: Node) -> list[Node]:
     return [leaf for a in node.get("args", []) for leaf in leaves(a)]
 
 
-def evaluate_node(node: Node, signals: dict[str, np.ndarray]) -> np.ndarray:
-    """Evaluate a resolved node given the signal arrays keyed by ``signal_key``."""
+def evaluate_node(node: Node, signals: dict[str, np.ndarray], cache: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """Evaluate a resolved node given the signal arrays keyed by ``signal_key``.
+
+    ``cache`` (optional, keyed by canonical sub-expression text) shares common sub-expressions such
+    as ``(t1-25)`` between the terms of one design matrix; integer powers use repeated products."""
     op = node["op"]
     if op in ("temp", "rate", "column"):
         return signals[signal_key(node)]
     if op == "const":
         return np.float64(node["value"])
+    key = node_text(node) if cache is not None else None
+    if key is not None and key in cache:
+        return cache[key]
     if op == "pow":
-        base = evaluate_node(node["args"][0], signals)
-        return base ** node["exp"]
-    a, b = (evaluate_node(x, signals) for x in node["args"])
-    if op == "add":
-        return a + b
-    if op == "sub":
-        return a - b
-    if op == "mul":
-        return a * b
-    raise ValueError(f"unknown node op {op!r}")
+        base = evaluate_node(node["args"][0], signals, cache)
+        e = node["exp"]
+        if e == 1:
+            out = base
+        elif e == 2:
+            out = base * base
+        elif e == 3:
+            out = base * base * base
+        else:
+            out = base ** e
+    else:
+        a, b = (evaluate_node(x, signals, cache) for x in node["args"])
+        if op == "add":
+            out = a + b
+        elif op == "sub":
+            out = a - b
+        elif op == "mul":
+            out = a * b
+        else:
+            raise ValueError(f"unknown node op {op!r}")
+    if key is not None:
+        cache[key] = out
+    return out
 
 
 # ------------------------------------------------------------------------------------ compiled form
@@ -368,8 +387,9 @@ class CompiledFormula:
                     sig[key] = np.clip(v, lo, hi)
         x = np.empty((n, 1 + len(self.terms)), order="F")
         x[:, 0] = 1.0
+        cache: dict[str, np.ndarray] = {}
         for j, term in enumerate(self.terms, start=1):
-            x[:, j] = evaluate_node(term, sig)
+            x[:, j] = evaluate_node(term, sig, cache)
         return x, flagged
 
     def recipe(self) -> list[dict[str, Any]]:

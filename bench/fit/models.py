@@ -151,9 +151,12 @@ def _hull(points: np.ndarray) -> tuple[list[list[float]], np.ndarray | None, np.
     span = np.where(hi > lo, hi - lo, 1.0)
     scaled = (pts - lo) / span
     try:
-        h = ConvexHull(np.unique(np.round(scaled, 9), axis=0))
+        h = ConvexHull(scaled)
     except QhullError:
-        return [], None, None
+        try:
+            h = ConvexHull(np.unique(np.round(scaled, 9), axis=0))
+        except QhullError:       # degenerate (e.g. a constant rate): no hull, box limits still apply
+            return [], None, None
     verts = h.points[h.vertices] * span + lo
     return verts.tolist(), h.equations, np.vstack([lo, span])
 
@@ -206,6 +209,7 @@ def fit_linear_terms(model: str, ds: Dataset, channel: str, *, terms: list[tuple
     signals = compiled.signals(work)
     x, _ = compiled.design(work, signals=signals)
     keep = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
+    n_usable = int(keep.sum())
     n_rejected = 0
     weighting = "every sample" if not average_s else f"{average_s:g} s block means"
     for _ in range(3 if pauta else 1):
@@ -223,7 +227,7 @@ def fit_linear_terms(model: str, ds: Dataset, channel: str, *, terms: list[tuple
         if not pauta:
             break
         new_keep = keep & prep.pauta_mask(np.where(keep, resid, np.nan))
-        n_rejected = int(np.isfinite(y).sum() - new_keep.sum())
+        n_rejected = n_usable - int(new_keep.sum())
         if np.array_equal(new_keep, keep):
             break
         keep = new_keep

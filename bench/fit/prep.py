@@ -42,7 +42,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from bench.errors import DataFormatError
 from bench.fit.base import EARTH_RATE_DPH, Dataset
@@ -67,12 +66,19 @@ def pauta_mask(x: np.ndarray, *, time: np.ndarray | None = None, window_s: float
     x = np.asarray(x, dtype=np.float64)
     keep = np.isfinite(x)
     if window_s is None:
-        groups = np.zeros(len(x), dtype=np.int64)
-    else:
-        if time is None:
-            raise ValueError("pauta_mask: window_s needs time")
-        t = np.asarray(time, dtype=np.float64)
-        groups = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
+        for _ in range(max_iter):
+            if keep.sum() < 3:
+                break
+            mean, sd = x[keep].mean(), x[keep].std(ddof=1)
+            new_keep = keep & (np.abs(x - mean) <= n_sigma * sd)
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+        return keep
+    if time is None:
+        raise ValueError("pauta_mask: window_s needs time")
+    t = np.asarray(time, dtype=np.float64)
+    groups = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
     ng = int(groups.max()) + 1 if len(groups) else 0
     for _ in range(max_iter):
         w = keep.astype(np.float64)
@@ -121,8 +127,7 @@ def block_average(ds: Dataset, period_s: float = 100.0, *, min_fraction: float =
     cols: dict[str, np.ndarray] = {}
     for name, col in ds.columns.items():
         if name == "orientation":
-            first = np.zeros(nseg, dtype=np.int64)
-            first[seg[::-1]] = np.arange(len(seg))[::-1]
+            first = np.r_[0, np.flatnonzero(np.diff(seg)) + 1]     # seg is non-decreasing
             cols[name] = np.asarray(col)[first][keep_seg]
             continue
         v = np.asarray(col, dtype=np.float64)
@@ -212,7 +217,7 @@ def rate_c_per_min(time_s: np.ndarray, temp_c: np.ndarray, window_s: float = DEF
     if len(grid) < 3:
         return out
     xg = np.interp(grid, to, xo)
-    slope = savgol_filter(xg, 2 * half + 1, polyorder=1, deriv=1, delta=dt, mode="interp")
+    slope = _centred_slope(xg, half) / dt
     rate = np.interp(t, grid, slope) * 60.0
     # samples near a gap longer than half the window: the filter saw interpolated, not measured data
     gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
@@ -222,6 +227,28 @@ def rate_c_per_min(time_s: np.ndarray, temp_c: np.ndarray, window_s: float = DEF
         rate[out_mask] = np.nan
     rate[(t < to[0]) | (t > to[-1])] = np.nan
     out[:] = rate
+    return out
+
+
+def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
+    """Least-squares slope (per sample) over x[i-half .. i+half], O(n) with cumulative sums; at the
+    ends the slope of the first / last full window is used (= Savitzky-Golay polyorder 1, deriv 1,
+    mode "interp")."""
+    n = len(x)
+    w = 2 * half + 1
+    xc = x - x.mean()                       # keep cumulative sums small
+    j = np.arange(n, dtype=np.float64) - n / 2.0
+    c0 = np.concatenate([[0.0], np.cumsum(xc)])
+    c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
+    centre = np.arange(half, n - half)
+    s0 = c0[centre + half + 1] - c0[centre - half]
+    s1 = c1[centre + half + 1] - c1[centre - half]
+    num = s1 - j[centre] * s0                # sum over k of k * x[i+k]
+    den = half * (half + 1) * w / 3.0        # sum over k of k^2
+    out = np.empty(n)
+    out[half:n - half] = num / den
+    out[:half] = out[half]
+    out[n - half:] = out[n - half - 1]
     return out
 
 

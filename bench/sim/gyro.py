@@ -46,7 +46,7 @@ Fault injection (``sim.faults``, a ``GyroFaults``):
 - ``clear_status_bits``: bit mask cleared from the status byte of every produced frame
   (e.g. 0x01 = gyro X invalid).  A sample with ``valid=False`` clears all validity bits.
 
-``sent_log`` keeps the last ``sent_log_limit`` produced frames as ``SentFrame`` (bench time,
+``sent_log`` (read it with ``sent_frames()``) keeps the last ``sent_log_limit`` produced frames as ``SentFrame`` (bench time,
 sequence, the exact bytes built, whether they were written to a client, whether the line
 corrupted them): tests compare what the driver accepted against it.
 """
@@ -212,6 +212,12 @@ class GyroStreamSimulator:
 
     def __exit__(self, *exc) -> None:
         self.stop()
+
+    def sent_frames(self) -> list[SentFrame]:
+        """Snapshot of ``sent_log``, consistent with what is on the line: a batch is written and
+        logged under one lock, so a frame the driver already holds is always in the snapshot."""
+        with self._lock:
+            return list(self.sent_log)
 
     @property
     def data_rate_hz(self) -> int:

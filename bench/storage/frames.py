@@ -37,20 +37,19 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from sqlalchemy import func, insert, select, update
+from sqlalchemy import bindparam, insert, select, update
 from sqlalchemy.exc import DBAPIError, InterfaceError, OperationalError
 
 from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
 from bench.storage import codec
 from bench.storage.db import Database
 from bench.storage.errors import BufferFull, StorageError, StorageUnavailable, UnknownRun, WriterFenced
-from bench.storage.models import (SEGMENT_KINDS, Event, FrameChunk, FrameCursor, FrameSecond, Gap,
-                                  ProbeReadingRow, Run, Segment, Telemetry, utcnow)
+from bench.storage.models import (SECONDS_PER_BLOCK, SEGMENT_KINDS, SUM_FIELDS, Event, FrameChunk, FrameCursor,
+                                  FrameSecond, Gap, ProbeReadingRow, Run, Segment, Telemetry, utcnow)
 
 log = logging.getLogger(__name__)
 
-_SUM_COLUMNS = ("n", "n_invalid", "sum_dt", "sum_gx", "sum_gy", "sum_gz", "sum_ax", "sum_ay", "sum_az",
-                "n_temp", "sum_temp", "sum_fx", "sum_fy", "sum_fz")
+_SUM_COLUMNS = SUM_FIELDS
 _ROW_TABLES = {"gaps": Gap.__table__, "probe_readings": ProbeReadingRow.__table__,
                "telemetry": Telemetry.__table__, "events": Event.__table__, "segments": Segment.__table__}
 
@@ -97,18 +96,16 @@ class _Summary:
             cols[name] = np.bincount(inv, weights=values, minlength=uniq.size)
         return _Summary(uniq, cols, has_freq)
 
-    def rows(self, run_id: int) -> list[dict[str, Any]]:
-        out = []
-        names = list(self.cols)
-        ints = {"n", "n_invalid", "n_temp"}
-        columns = [self.cols[n].tolist() for n in names]
-        for i, sec in enumerate(self.second.tolist()):
-            row = {"run_id": run_id, "second": sec}
-            for name, col in zip(names, columns):
-                row[name] = int(round(col[i])) if name in ints else col[i]
-            if not self.has_freq:
-                row["sum_fx"] = row["sum_fy"] = row["sum_fz"] = None
-            out.append(row)
+    def blocks(self) -> dict[int, np.ndarray]:
+        """{first second of block: (SECONDS_PER_BLOCK, len(SUM_FIELDS)) float64 sums}."""
+        table = np.column_stack([self.cols.get(name, np.zeros(self.second.size)) for name in SUM_FIELDS])
+        starts = self.second - self.second % SECONDS_PER_BLOCK
+        out: dict[int, np.ndarray] = {}
+        for start in np.unique(starts).tolist():
+            sel = starts == start
+            arr = np.zeros((SECONDS_PER_BLOCK, len(SUM_FIELDS)))
+            arr[self.second[sel] - start] = table[sel]
+            out[start] = arr
         return out
 
 
@@ -201,6 +198,8 @@ class FrameWriter:
         self._rows_queued = 0          # totals, so flush() can wait for rows queued before it
         self._rows_committed = 0
         self._inflight: _Batch | None = None   # batch whose write failed: retried as is
+        self._block_cache: dict[int, tuple[bool, np.ndarray]] = {}    # frame_seconds rows as last committed
+        self._pending_cache: dict[int, tuple[bool, np.ndarray]] | None = None
         self._buffered_frames = 0
         self._committed_frames = 0
         self._seq = 0
@@ -424,6 +423,8 @@ class FrameWriter:
     def _summarise(self, frames: list[GyroFrame], times: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
                    temps: np.ndarray, freq: np.ndarray | None) -> _Summary:
         valid = np.isfinite(gyro).all(axis=1) & np.isfinite(accel).all(axis=1)
+        if freq is not None:
+            valid &= np.isfinite(freq).all(axis=1)
         if self.valid_status is not None:
             status = np.fromiter((f.status for f in frames), np.int64, len(frames))
             valid &= status == self.valid_status
@@ -444,7 +445,7 @@ class FrameWriter:
         cols["sum_temp"] = total(temps, temp_ok)
         if freq is not None:
             for i, axis in enumerate("xyz"):
-                cols[f"sum_f{axis}"] = total(freq[:, i], valid & np.isfinite(freq[:, i]))
+                cols[f"sum_f{axis}"] = total(freq[:, i], valid)
         return _Summary(uniq, cols, freq is not None)
 
     # ------------------------------------------------------------------ writing
@@ -474,22 +475,40 @@ class FrameWriter:
                                    f"{batch.frames} frames of this writer were not stored")
             if batch.chunks:
                 conn.execute(insert(FrameChunk), [c.row(self.run_id) for c in batch.chunks])
-                summary = _Summary.merge([c.summary for c in batch.chunks])
-                conn.execute(self._seconds_upsert(conn.dialect.name), summary.rows(self.run_id))
+                self._write_seconds(conn, _Summary.merge([c.summary for c in batch.chunks]))
             for name, rows in batch.rows.items():
                 if rows:
                     conn.execute(insert(_ROW_TABLES[name]), rows)
 
-    @staticmethod
-    def _seconds_upsert(dialect: str):
-        if dialect == "postgresql":
-            from sqlalchemy.dialects.postgresql import insert as dialect_insert
-        else:
-            from sqlalchemy.dialects.sqlite import insert as dialect_insert
-        table = FrameSecond.__table__
-        stmt = dialect_insert(table)
-        return stmt.on_conflict_do_update(index_elements=["run_id", "second"],
-                                          set_={c: table.c[c] + stmt.excluded[c] for c in _SUM_COLUMNS})
+    def _write_seconds(self, conn, summary: _Summary) -> None:
+        """Add the batch's per-second sums to the frame_seconds blocks (read-modify-write: this writer
+        is the run's only writer, see fencing; blocks it committed last are cached)."""
+        delta = summary.blocks()
+        missing = [b for b in delta if b not in self._block_cache]
+        stored: dict[int, tuple[bool, np.ndarray]] = {}
+        for i in range(0, len(missing), 500):
+            rows = conn.execute(select(FrameSecond.block, FrameSecond.has_freq, FrameSecond.sums)
+                                .where(FrameSecond.run_id == self.run_id,
+                                       FrameSecond.block.in_(missing[i:i + 500]))).all()
+            stored.update({b: (hf, np.frombuffer(raw, dtype="<f8").reshape(SECONDS_PER_BLOCK, -1))
+                           for b, hf, raw in rows})
+        inserts, updates, new_cache = [], [], {}
+        for block, arr in delta.items():
+            base = self._block_cache.get(block) or stored.get(block)
+            has_freq = summary.has_freq or (base is not None and base[0])
+            total = arr if base is None else base[1] + arr
+            params = {"p_run": self.run_id, "p_block": block, "p_hf": has_freq,
+                      "p_sums": total.astype("<f8").tobytes()}
+            (inserts if base is None else updates).append(params)
+            new_cache[block] = (has_freq, total)
+        t = FrameSecond.__table__
+        if inserts:
+            conn.execute(insert(t).values(run_id=bindparam("p_run"), block=bindparam("p_block"),
+                                          has_freq=bindparam("p_hf"), sums=bindparam("p_sums")), inserts)
+        if updates:
+            conn.execute(update(t).where(t.c.run_id == bindparam("p_run"), t.c.block == bindparam("p_block"))
+                         .values(has_freq=bindparam("p_hf"), sums=bindparam("p_sums")), updates)
+        self._pending_cache = new_cache
 
     def _committed_by_server(self, batch: _Batch) -> bool:
         """After a failure: did the batch commit anyway (reply lost)?  Raises if fenced or unreachable."""
@@ -507,6 +526,8 @@ class FrameWriter:
             self._n_rows -= len(rows)
             self._rows_committed += len(rows)
         self._inflight = None
+        self._block_cache = self._pending_cache or {}
+        self._pending_cache = None
         self._buffered_frames -= batch.frames
         self._committed_frames += batch.frames
         if batch.chunks:
@@ -522,9 +543,12 @@ class FrameWriter:
         if batch.empty:
             return
         try:
-            if not (batch is self._inflight and self._committed_by_server(batch)):
+            if batch is self._inflight and self._committed_by_server(batch):
+                self._pending_cache = None     # it did commit; re-read blocks from the database
+            else:
                 self._write(batch)
         except Exception as exc:          # noqa: BLE001 - classified here
+            self._block_cache, self._pending_cache = {}, None      # the database is the truth again
             if _is_transient(exc):
                 with self._cond:
                     self._inflight = batch

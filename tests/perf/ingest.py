@@ -234,7 +234,7 @@ def report(name: str, r: dict[str, float], target_ratio: float) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=300_000, help="frames for the ingest measurement")
+    ap.add_argument("--frames", type=int, default=1_000_000, help="frames for the ingest measurement")
     ap.add_argument("--naive-frames", type=int, default=20_000)
     ap.add_argument("--pg-url", default=DEFAULT_PG)
     ap.add_argument("--no-pg", action="store_true")

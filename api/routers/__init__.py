@@ -1,0 +1,1 @@
+"""API routers: runs, fits and coefficients, procedures / benches / health."""

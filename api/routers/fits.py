@@ -1,0 +1,322 @@
+"""Fits and coefficients: fit a model on stored runs, read a gyro's coefficients, accept a version,
+and close the loop (long: runs in the background, polled by id).
+
+A *fit* is one version of one model for one gyro; it has a row per channel.  ``/fits/{id}`` takes
+the id of any of those rows and answers with the whole version.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import HTMLResponse
+from sqlalchemy import and_, func, select
+
+from api.auth import Principal, require
+from api.deps import get_db
+from api.problems import Problem
+from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate
+from api.views import iso
+from bench.errors import BenchError
+from bench.fit.base import Dataset, FitResult
+from bench.storage import queries
+from bench.storage.db import Database
+from bench.storage.models import Analysis, Fit, Gyro, Run, utcnow
+
+router = APIRouter(tags=["fits"])
+RUN_GAP_S = 86_400.0       # time offset between concatenated runs (rate filters see a gap, not a jump)
+_FIT_FIELDS = [f.name for f in dataclasses.fields(FitResult)]
+
+
+# ------------------------------------------------------------------------------------ helpers
+def _group_doc(rows: list[Fit], *, full: bool = True) -> dict[str, Any]:
+    first = rows[0]
+    doc: dict[str, Any] = {"id": min(r.id for r in rows), "gyro_id": first.gyro_id, "model": first.model,
+                           "version": first.version, "accepted": all(r.accepted for r in rows),
+                           "created_at": iso(first.created_at), "run_ids": first.run_ids}
+    channels: dict[str, Any] = {}
+    for r in sorted(rows, key=lambda r: r.channel):
+        entry: dict[str, Any] = {"coefficients": r.coefficients, "units": (r.result or {}).get("units")}
+        if full:
+            res = r.result or {}
+            entry.update(definition=res.get("definition"), validity=res.get("validity"), stats=res.get("stats"),
+                         target=res.get("target"), metrics=res.get("metrics"))
+        channels[r.channel] = entry
+    doc["channels"] = channels
+    return doc
+
+
+def _group_rows(session, fit_id: int) -> list[Fit]:
+    one = session.get(Fit, fit_id)
+    if one is None:
+        raise Problem(404, "Fit not found", f"fit {fit_id} does not exist")
+    return list(session.scalars(select(Fit).where(Fit.gyro_id == one.gyro_id, Fit.model == one.model,
+                                                  Fit.version == one.version).order_by(Fit.channel)))
+
+
+def _results(rows: list[Fit]) -> list[FitResult]:
+    out = []
+    for r in rows:
+        res = r.result or {}
+        out.append(FitResult(**{k: res[k] for k in _FIT_FIELDS if k in res}))
+    return out
+
+
+def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | None) -> tuple[Dataset, str | None]:
+    """The recorded data of ``run_ids`` as one Dataset (runs one after the other, RUN_GAP_S apart) and their
+    common gyro id.  Refuses unknown runs, runs of different gyros and runs with too little data."""
+    from bench.worker import run_dataset
+
+    gyro_ids, parts = set(), []
+    with db.session() as s:
+        for rid in run_ids:
+            run = s.get(Run, rid)
+            if run is None:
+                raise Problem(422, "Unknown run", f"run {rid} does not exist")
+            gyro_ids.add(run.gyro_id)
+            lat = latitude_deg if latitude_deg is not None else (run.config_snapshot or {}).get("latitude_deg")
+            parts.append((rid, lat))
+    if len(gyro_ids) > 1:
+        raise Problem(422, "Runs of different gyros", f"runs {run_ids} belong to gyros {sorted(map(str, gyro_ids))}")
+    datasets = []
+    for rid, lat in parts:
+        ds = run_dataset(db, rid, lat)
+        if len(ds) < 10:
+            raise Problem(422, "Not enough data", f"run {rid} has {len(ds)} recorded seconds stored; at least 10 "
+                          f"are needed to fit")
+        datasets.append(ds)
+    if len(datasets) == 1:
+        return datasets[0], gyro_ids.pop()
+    common = [k for k in datasets[0].columns if all(k in d.columns for d in datasets[1:])]
+    offset, merged = 0.0, {k: [] for k in common}
+    for d in datasets:
+        for k in common:
+            merged[k].append(d.columns[k] + offset if k == "time_s" else d.columns[k])
+        offset += float(d.columns["time_s"][-1]) + RUN_GAP_S
+    meta = dict(datasets[0].meta)
+    meta["run_id"] = ",".join(str(r) for r in run_ids)
+    if any("latitude_deg" not in d.meta for d in datasets):
+        meta.pop("latitude_deg", None)
+    return Dataset({k: np.concatenate(v) for k, v in merged.items()}, meta), gyro_ids.pop()
+
+
+# ------------------------------------------------------------------------------ coefficients
+@router.get("/gyros/{gyro_id}/coefficients", summary="A gyro's coefficients: the latest accepted fit per model")
+def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
+                 _: Principal = Depends(require("viewer")),
+                 model: str | None = Query(None, min_length=1, max_length=300),
+                 version: int | None = Query(None, ge=1, le=1_000_000,
+                                             description="a specific version (needs model); accepted or not")):
+    if version is not None and model is None:
+        raise Problem(422, "Invalid input", "version needs model: a version number is per model")
+    if not _valid_id(gyro_id):
+        raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
+    f = Fit.__table__.c
+    stmt = select(f.id, f.model, f.channel, f.version, f.coefficients, f.result, f.accepted, f.created_at,
+                  f.run_ids).where(f.gyro_id == gyro_id)
+    if model is not None:
+        stmt = stmt.where(f.model == model)
+    stmt = stmt.where(f.version == version) if version is not None else stmt.where(f.accepted.is_(True))
+    with db.engine.connect() as conn:
+        rows = conn.execute(stmt.order_by(f.model, f.channel)).all()
+        if not rows:
+            known = conn.execute(select(func.count()).select_from(Gyro.__table__)
+                                 .where(Gyro.__table__.c.gyro_id == gyro_id)).scalar()
+    if not rows:
+        if not known:
+            raise Problem(404, "Gyro not found", f"no gyro {gyro_id!r} is stored")
+        what = f"{model} version {version}" if version else (f"accepted {model} fit" if model else "accepted fit")
+        raise Problem(404, "No coefficients", f"gyro {gyro_id!r} has no {what}")
+    models: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        m = models.setdefault(r.model, {"model": r.model, "version": r.version, "fit_id": r.id,
+                                        "accepted": r.accepted, "created_at": iso(r.created_at),
+                                        "run_ids": r.run_ids, "channels": {}})
+        m["fit_id"] = min(m["fit_id"], r.id)
+        res = r.result or {}
+        m["channels"][r.channel] = {"coefficients": r.coefficients, "units": res.get("units"),
+                                    "validity": res.get("validity"), "definition": res.get("definition")}
+    return {"gyro_id": gyro_id, "models": list(models.values())}
+
+
+def _valid_id(text: str) -> bool:
+    import re
+    return re.match(ID_PATTERN, text) is not None
+
+
+@router.get("/gyros/{gyro_id}/fits", summary="Every fit version of a gyro")
+def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+              model: str | None = Query(None, min_length=1, max_length=300)):
+    with db.session() as s:
+        if s.get(Gyro, gyro_id) is None:
+            raise Problem(404, "Gyro not found", f"no gyro {gyro_id!r} is stored")
+        rows = queries.list_fits(s, gyro_id, model=model)
+        groups: dict[tuple[str, int], list[Fit]] = {}
+        for r in rows:
+            groups.setdefault((r.model, r.version), []).append(r)
+        return {"gyro_id": gyro_id, "fits": [_group_doc(g, full=False) for g in groups.values()]}
+
+
+# -------------------------------------------------------------------------------------- fits
+@router.post("/fits", status_code=201, summary="Fit a model on stored runs")
+def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+    """Fit ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
+    ``validation_run_ids`` too) and store it as the next version of the model for the gyro."""
+    from bench.commands.fitting import fit_channels
+
+    if body.accept and not who.allows("admin"):
+        raise Problem(403, "Not allowed", "accepting a fit as the gyro's coefficients needs the admin role")
+    overlap = set(body.run_ids) & set(body.validation_run_ids)
+    if overlap:
+        raise Problem(422, "Invalid input", f"runs {sorted(overlap)} are both training and validation runs")
+    train, gyro_id = load_runs_dataset(db, body.run_ids, body.latitude_deg)
+    validate = None
+    if body.validation_run_ids:
+        validate, vgyro = load_runs_dataset(db, body.validation_run_ids, body.latitude_deg)
+        if vgyro != gyro_id:
+            raise Problem(422, "Runs of different gyros", f"validation runs belong to gyro {vgyro}, training "
+                          f"runs to {gyro_id}")
+    gyro_id = body.gyro_id or gyro_id
+    if gyro_id is None:
+        raise Problem(422, "Invalid input", "the runs have no gyro id; give gyro_id")
+    channels = list(body.channels) if body.channels else train.gyro_channels()
+    missing = [c for c in channels if f"gyro_{c}" not in train]
+    if missing:
+        raise Problem(422, "Invalid input", f"channels {missing} are not in the data (have {train.gyro_channels()})")
+    opts = {"latitude_deg": body.latitude_deg} if body.latitude_deg is not None else {}
+    try:
+        doc, results = fit_channels(body.model, train, validate, channels, opts)
+    except (BenchError, ValueError, KeyError, np.linalg.LinAlgError) as exc:
+        raise Problem(422, "Fit failed", f"{body.model} on runs {body.run_ids}: {str(exc).strip(chr(39))}") from None
+    stored = []
+    for r in results:
+        item = r.to_json()
+        item["metrics"] = {k: v for k, v in doc["channels"].get(r.channel, {}).items()
+                           if k in ("train", "validation")}
+        item["validation_run_ids"] = body.validation_run_ids
+        stored.append(item)
+    with db.session() as s:
+        versions = queries.save_fits(s, gyro_id, body.run_ids, stored, accepted=body.accept)
+        model_name = results[0].model
+        rows = list(s.scalars(select(Fit).where(Fit.gyro_id == gyro_id, Fit.model == model_name,
+                                                Fit.version == versions[model_name])))
+        out = _group_doc(rows)
+    out["requested_by"] = who.name
+    return out
+
+
+@router.get("/fits/{fit_id}", summary="One fit version (all its channels)")
+def get_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    with db.session() as s:
+        return _group_doc(_group_rows(s, fit_id))
+
+
+@router.post("/fits/{fit_id}/accept", summary="Make this version the gyro's accepted coefficients for its model")
+def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
+    with db.session() as s:
+        rows = _group_rows(s, fit_id)
+        queries.accept_fits(s, rows[0].gyro_id, rows[0].model, rows[0].version)
+    with db.session() as s:
+        doc = _group_doc(_group_rows(s, fit_id))
+    doc["accepted_by"] = who.name
+    return doc
+
+
+@router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version")
+def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    from bench.fit.export import build_export
+
+    with db.session() as s:
+        rows = _group_rows(s, fit_id)
+        gyro = s.get(Gyro, rows[0].gyro_id)
+        gyro_type = gyro.type if gyro is not None and gyro.type else None
+    try:
+        return build_export(rows[0].gyro_id, _results(rows), gyro_type=gyro_type,
+                            source={"fit_id": fit_id, "run_ids": rows[0].run_ids, "version": rows[0].version})
+    except BenchError as exc:
+        raise Problem(422, "Cannot export", str(exc)) from None
+
+
+@router.get("/fits/{fit_id}/report", summary="HTML report of this version on its training / validation runs",
+            response_class=HTMLResponse)
+def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    from bench.fit.catalog import predict
+    from bench.fit.report import render_fit_report
+
+    with db.session() as s:
+        rows = _group_rows(s, fit_id)
+    first = rows[0]
+    train, _g = load_runs_dataset(db, [int(r) for r in first.run_ids], None)
+    val_ids = (first.result or {}).get("validation_run_ids") or []
+    validate = load_runs_dataset(db, [int(r) for r in val_ids], None)[0] if val_ids else None
+    try:
+        page = render_fit_report(_results(rows), train, validate, predict=predict,
+                                 title=f"{first.gyro_id}: {first.model} v{first.version}")
+    except (BenchError, ValueError, KeyError) as exc:
+        raise Problem(422, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
+    return HTMLResponse(page)
+
+
+# -------------------------------------------------------------------------------- close loop
+def _close_loop_job(db: Database, analysis_id: int, body: dict[str, Any]) -> None:
+    from bench.commands.common import clean_floats
+    from bench.fit.closeloop import close_loop, public
+
+    with db.session() as s:
+        a = s.get(Analysis, analysis_id)
+        a.status = "running"
+    try:
+        train, _ = load_runs_dataset(db, [body["train_run_id"]], body.get("latitude_deg"))
+        validate, _ = load_runs_dataset(db, [body["validation_run_id"]], body.get("latitude_deg"))
+        report = close_loop(train, validate, body["model"], channels=body.get("channels"),
+                            latitude_deg=body.get("latitude_deg"))
+        result, status, error = clean_floats(public(report)), "done", None
+    except Problem as exc:
+        result, status, error = None, "failed", exc.detail
+    except Exception as exc:  # noqa: BLE001 - the failure is the analysis' result, reported to the caller
+        result, status, error = None, "failed", f"{type(exc).__name__}: {exc}"
+    with db.session() as s:
+        a = s.get(Analysis, analysis_id)
+        a.status, a.result, a.error, a.finished_at = status, result, error, utcnow()
+
+
+def _analysis_doc(a: Analysis) -> dict[str, Any]:
+    return {"id": a.id, "kind": a.kind, "status": a.status, "gyro_id": a.gyro_id, "request": a.request,
+            "requested_by": a.requested_by, "created_at": iso(a.created_at), "finished_at": iso(a.finished_at),
+            "error": a.error, "result": a.result}
+
+
+@router.post("/close-loop", status_code=202, summary="Close the loop on a training and a held-out run (background)")
+def create_close_loop(body: CloseLoopCreate, request: Request, db: Database = Depends(get_db),
+                      who: Principal = Depends(require("operator"))):
+    if body.train_run_id == body.validation_run_id:
+        raise Problem(422, "Invalid input", "the validation run must differ from the training run")
+    with db.session() as s:
+        gyros = set()
+        for rid in (body.train_run_id, body.validation_run_id):
+            run = s.get(Run, rid)
+            if run is None:
+                raise Problem(422, "Unknown run", f"run {rid} does not exist")
+            gyros.add(run.gyro_id)
+        a = Analysis(kind="close_loop", gyro_id=next(iter(gyros)) if len(gyros) == 1 else None,
+                     request=body.model_dump(mode="json"), status="queued", requested_by=who.name, created_at=utcnow())
+        s.add(a)
+        s.flush()
+        doc = _analysis_doc(a)
+    t = threading.Thread(target=_close_loop_job, args=(db, doc["id"], body.model_dump(mode="json")),
+                         name=f"close-loop-{doc['id']}", daemon=True)
+    t.start()
+    request.app.state.jobs.append(t)
+    return doc
+
+
+@router.get("/close-loop/{analysis_id}", summary="Close-the-loop analysis: status and report")
+def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    with db.session() as s:
+        a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
+        if a is None:
+            raise Problem(404, "Not found", f"close-loop analysis {analysis_id} does not exist")
+        return _analysis_doc(a)

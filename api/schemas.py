@@ -1,0 +1,67 @@
+"""Request bodies of the API.  Every body refuses unknown fields (``extra="forbid"``) and checks its
+ranges, so a typo is an error rather than a silently ignored setting."""
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class RunCreate(_Body):
+    procedure: str = Field(..., min_length=1, max_length=64, description="a name from GET /procedures")
+    gyro_id: str = GyroId
+    bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
+    params: dict[str, Any] = Field(default_factory=dict,
+                                   description="procedure parameters; see GET /procedures for schema and defaults")
+    start_at: dt.datetime | None = Field(None, description="scheduled start (ISO 8601 with a time zone); "
+                                                           "the run waits in the queue until then")
+    operator: str | None = Field(None, max_length=64, description="who starts the run (for the records)")
+
+    @field_validator("start_at")
+    @classmethod
+    def _aware(cls, value: dt.datetime | None) -> dt.datetime | None:
+        if value is not None and value.utcoffset() is None:
+            raise ValueError("start_at needs a time zone, e.g. 2025-03-01T22:00:00+01:00 or ...Z")
+        return value.astimezone(dt.timezone.utc) if value is not None else None
+
+
+class FitCreate(_Body):
+    model: str = Field(..., min_length=1, max_length=300,
+                       description="a model name (static, dynamic, patent37, hrg, fog_stepwise...) or a formula")
+    run_ids: list[int] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
+    validation_run_ids: list[int] = Field(default_factory=list, max_length=20,
+                                          description="held-out runs the report evaluates on")
+    gyro_id: str | None = Field(None, pattern=ID_PATTERN, description="defaults to the runs' gyro")
+    channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
+    latitude_deg: float | None = Field(None, ge=-90, le=90)
+    accept: bool = Field(False, description="make this version the gyro's accepted coefficients (admin only)")
+
+    @field_validator("run_ids", "validation_run_ids")
+    @classmethod
+    def _positive(cls, value: list[int]) -> list[int]:
+        bad = [v for v in value if v < 1]
+        if bad:
+            raise ValueError(f"run ids are positive integers, got {bad}")
+        if len(set(value)) != len(value):
+            raise ValueError("a run id is listed twice")
+        return value
+
+
+class CloseLoopCreate(_Body):
+    model: str = Field(..., min_length=1, max_length=300, description="declared model: a linear model or a formula")
+    train_run_id: int = Field(..., ge=1)
+    validation_run_id: int = Field(..., ge=1)
+    channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
+    latitude_deg: float | None = Field(None, ge=-90, le=90)
+
+
+DataStream = Literal["seconds", "frames", "probes", "telemetry"]
+DataFormat = Literal["json", "csv"]

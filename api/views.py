@@ -1,0 +1,151 @@
+"""JSON documents the API answers with, built from the database rows."""
+from __future__ import annotations
+
+import datetime as dt
+import math
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from bench.storage.db import Database
+from bench.storage.models import (Bench, FrameCursor, Gap, ProbeReadingRow, Run, RunRequest, Step, Suspension,
+                                  Telemetry, utcnow)
+
+TERMINAL = ("completed", "aborted", "failed")
+
+
+def iso(value: dt.datetime | None) -> str | None:
+    if value is None:
+        return None
+    if value.tzinfo is None:
+        value = value.replace(tzinfo=dt.timezone.utc)
+    return value.isoformat()
+
+
+def fresh(heartbeat: dt.datetime | None, stale_after_s: float) -> bool:
+    if heartbeat is None:
+        return False
+    if heartbeat.tzinfo is None:
+        heartbeat = heartbeat.replace(tzinfo=dt.timezone.utc)
+    return (utcnow() - heartbeat).total_seconds() <= stale_after_s
+
+
+def finite(x: Any) -> Any:
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, (np.floating,)):
+        return finite(float(x))
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    return x
+
+
+def run_summary(run: Run, bench_name: str | None, stale_after_s: float) -> dict[str, Any]:
+    live = run.live or {}
+    active = run.status in ("running", "paused", "stopping", "suspended")
+    return {
+        "id": run.id, "procedure": run.procedure, "gyro_id": run.gyro_id, "bench": bench_name,
+        "status": run.status, "outcome": live.get("outcome"), "operator": run.operator,
+        "created_at": iso(run.created_at), "start_at": iso(run.start_at), "started_at": iso(run.started_at),
+        "finished_at": iso(run.finished_at),
+        "progress_percent": round(100.0 * run.progress, 2),
+        "step_index": run.current_step,
+        "eta_utc": live.get("eta_utc") if active else None,
+        "worker": run.worker, "worker_alive": fresh(run.heartbeat_at, stale_after_s) if active else None,
+        "heartbeat_at": iso(run.heartbeat_at), "error": run.error,
+    }
+
+
+def run_detail(session: Session, db: Database, run: Run, bench_name: str | None, stale_after_s: float) -> dict[str, Any]:
+    doc = run_summary(run, bench_name, stale_after_s)
+    live = run.live or {}
+    prog = live.get("progress") or {}
+    steps = session.scalars(select(Step).where(Step.run_id == run.id).order_by(Step.index)).all()
+    current = next((s for s in steps if s.index == run.current_step), None)
+    doc["parameters"] = run.parameters
+    doc["step"] = ({"index": current.index, "kind": current.kind, "status": current.status,
+                    "n_steps": len(steps)} if current is not None else None)
+    doc["remaining_bench_s"] = finite(prog.get("remaining_bench_s")) if run.status not in TERMINAL else 0.0
+    doc["elapsed_bench_s"] = finite(prog.get("elapsed_bench_s"))
+    doc["estimated_total_bench_s"] = finite((live.get("summary") or {}).get("total_bench_s"))
+    doc["steps"] = [{"index": s.index, "kind": s.kind, "status": s.status, "started_t": s.started_t,
+                     "finished_t": s.finished_t} for s in steps]
+    doc["gaps"] = [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason, "frames_missing": g.frames_missing}
+                   for g in session.scalars(select(Gap).where(Gap.run_id == run.id).order_by(Gap.t_from))]
+    doc["suspensions"] = [{"t_from": s.t_from, "t_to": s.t_to, "reason": s.reason}
+                          for s in session.scalars(select(Suspension).where(Suspension.run_id == run.id)
+                                                   .order_by(Suspension.t_from))]
+    doc["pending_requests"] = [{"id": r.id, "command": r.command, "requested_at": iso(r.created_at)}
+                               for r in session.scalars(select(RunRequest).where(
+                                   RunRequest.run_id == run.id, RunRequest.consumed_at.is_(None))
+                                   .order_by(RunRequest.id))]
+    doc["fits"] = live.get("fits")
+    doc["latest"] = latest_readings(session, db, run.id)
+    return doc
+
+
+def latest_readings(session: Session, db: Database, run_id: int) -> dict[str, Any]:
+    """The newest stored value of each signal: chamber, table, PSU, every probe and the gyro's last 1-s mean."""
+    out: dict[str, Any] = {}
+    tm = Telemetry
+    for device in ("chamber", "turntable", "psu"):
+        row = session.scalars(select(tm).where(tm.run_id == run_id, tm.device == device)
+                              .order_by(tm.t.desc()).limit(1)).first()
+        if row is None:
+            continue
+        if device == "chamber":
+            out["chamber"] = {"t": row.t, "pv_c": row.chamber_pv, "setpoint_c": row.chamber_sp,
+                              "ramp_setpoint_c": row.chamber_ramp_sp, "mode": row.chamber_mode,
+                              "alarm": row.chamber_alarm}
+        elif device == "turntable":
+            out["turntable"] = {"t": row.t, "axis1_deg": row.axis1_pos, "axis1_dps": row.axis1_rate,
+                                "axis2_deg": row.axis2_pos, "axis2_dps": row.axis2_rate}
+        else:
+            out["psu"] = {"t": row.t, "volts": row.psu_volts, "amps": row.psu_amps, "on": row.psu_on}
+    p = ProbeReadingRow
+    t_last = session.scalar(select(func.max(p.t)).where(p.run_id == run_id))
+    if t_last is not None:
+        out["probes"] = {"t": t_last, "celsius": {r.name: r.celsius for r in session.scalars(
+            select(p).where(p.run_id == run_id, p.t == t_last))},
+            "faults": {r.name: r.fault for r in session.scalars(
+                select(p).where(p.run_id == run_id, p.t == t_last, p.fault.is_not(None)))}}
+    cur = session.get(FrameCursor, run_id)
+    if cur is not None and cur.t_last is not None:
+        gyro: dict[str, Any] = {"t_last_frame": cur.t_last, "frames": cur.next_index}
+        try:
+            from bench.storage.reader import second_means
+            sm = second_means(db, run_id, t_from=cur.t_last - 3.0, t_to=cur.t_last)
+            if len(sm.time):
+                gyro["mean_1s"] = {"t": float(sm.time[-1]), "output_unit": "device units (see bench config)",
+                                   "gyro": [finite(float(v)) for v in sm.gyro[-1]],
+                                   "temperature_c": finite(float(sm.temperature_c[-1]))}
+        except Exception as exc:  # noqa: BLE001 - the summary is optional; report why it is missing
+            gyro["mean_1s_error"] = f"{type(exc).__name__}: {exc}"
+        out["gyro"] = gyro
+    return out
+
+
+def bench_doc(session: Session, bench: Bench, stale_after_s: float) -> dict[str, Any]:
+    cfg = bench.config or {}
+    devices = {
+        "chamber": {k: (cfg.get("chamber") or {}).get(k) for k in ("transport", "address", "unit_id")},
+        "turntable": {k: (cfg.get("turntable") or {}).get(k) for k in ("url", "axes")},
+        "gyro": {k: (cfg.get("gyro") or {}).get(k) for k in ("url", "frame", "data_rate_hz", "channels")},
+        "probes": dict((cfg.get("probes") or {}).get("probes") or {}),
+        "psu": {k: (cfg.get("psu") or {}).get(k) for k in ("url", "voltage_v", "current_limit_a")},
+    }
+    active = session.scalars(select(Run).where(Run.bench_id == bench.id,
+                                               Run.status.in_(("running", "paused", "stopping", "suspended")))
+                             .order_by(Run.id)).first()
+    queued = session.scalar(select(func.count()).select_from(Run).where(Run.bench_id == bench.id,
+                                                                        Run.status == "queued")) or 0
+    online = fresh(bench.heartbeat_at, stale_after_s)
+    return {"name": bench.name, "devices": devices, "worker": bench.worker if online else None,
+            "online": online, "heartbeat_at": iso(bench.heartbeat_at),
+            "state": (bench.state or {}).get("state") if online else "offline",
+            "current_run": ({"id": active.id, "status": active.status, "procedure": active.procedure,
+                             "gyro_id": active.gyro_id, "progress_percent": round(100 * active.progress, 2)}
+                            if active else None),
+            "queued_runs": int(queued), "latitude_deg": cfg.get("latitude_deg")}

@@ -1,0 +1,45 @@
+"""``bench sim up``: the whole simulated bench in one process."""
+from __future__ import annotations
+
+import signal
+import threading
+from typing import Optional
+
+import typer
+
+from bench.commands.common import guarded
+
+sim_app = typer.Typer(help="The simulated bench (every device on a real loopback transport).", no_args_is_help=True)
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(sim_app, name="sim")
+
+
+@sim_app.command("up")
+@guarded
+def up(
+    speed: float = typer.Option(3600.0, "--speed", help="bench seconds per wall second"),
+    scenario: str = typer.Option("default", "--scenario", help="scenario JSON file or a built-in name"),
+    endpoints_json: Optional[str] = typer.Option(None, "--endpoints-json",
+                                                 help="write the endpoints and a bench config here"),
+    seconds: Optional[float] = typer.Option(None, "--seconds", help="stop after this many wall seconds"),
+) -> None:
+    """Start chamber (Modbus TCP + RTU over TCP), turntable, gyro, PSU and DS18B20 tree; run until
+    interrupted."""
+    from bench.sim.bench import SimulatedBench
+
+    bench = SimulatedBench(speed=speed, scenario=scenario).start()
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: done.set())
+    try:
+        if endpoints_json:
+            bench.write_endpoints(endpoints_json)
+        for key, value in bench.endpoints.items():
+            if key not in ("clock", "probes"):
+                typer.echo(f"{key}: {value}")
+        typer.echo(f"simulated bench up at x{speed:g}; Ctrl-C to stop", err=True)
+        done.wait(seconds)
+    finally:
+        bench.stop()

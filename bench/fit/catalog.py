@@ -1,0 +1,35 @@
+"""Every model of the fitting module in one registry: the linear models of ``bench.fit.models`` plus the
+HRG (S002) and FOG (S004) models.  Import ``fit_model`` / ``predict`` from here."""
+from __future__ import annotations
+
+import numpy as np
+
+from bench.fit import fog, hrg, prep
+from bench.fit.base import Dataset, FitResult
+from bench.fit.models import compensate, fit_model, predict, register_model, registered_models
+
+for _name, _fit, _predict, _desc in (
+        ("hrg", hrg.fit_hrg, hrg.predict_hrg, "S002 eq 7 six-term bias model, least squares"),
+        ("hrg_pso", hrg.fit_hrg_pso, hrg.predict_hrg, "S002 eq 7 by particle swarm (paper settings), LS cost beside"),
+        ("hrg_reverse", hrg.fit_hrg_reverse, hrg.predict_hrg_reverse, "S002 reverse cubic T(f) (frequency thermometer)"),
+        ("hrg_forward", hrg.fit_hrg_forward, hrg.predict_hrg_forward, "S002 forward cubic f(T)"),
+        ("fog_stepwise", fog.fit_fog_stepwise, fog.predict_fog_stepwise, "S004 eq 6 stepwise regression (HAC tests)"),
+        ("fog_delaunay", fog.fit_fog_delaunay, fog.predict_fog_delaunay, "S004 2-D Delaunay interpolation over (T, dT/dt)")):
+    if _name not in registered_models():
+        register_model(_name, _fit, _predict, description=_desc)
+
+NAMED_MODELS = tuple(registered_models())
+
+
+def target_of(result: FitResult, data: Dataset) -> np.ndarray:
+    """What the model predicts, measured on ``data``: the target column, less the Earth rate when the
+    fit removed it."""
+    y = np.asarray(data[result.target], dtype=float)
+    er = (result.definition.get("earth_rate") or {})
+    if er.get("earth_rate_removed") is True:
+        axis = np.asarray(er.get("axis")) if er.get("axis") is not None else None
+        y = y - prep.earth_rate_reading(data, result.channel, er.get("latitude_deg"), axis)
+    return y
+
+
+__all__ = ["fit_model", "predict", "compensate", "target_of", "NAMED_MODELS"]

@@ -1,0 +1,67 @@
+"""Self-contained HTML page of a close-the-loop analysis: residual before/after against time, T and
+dT/dt, Allan deviation before/after, the effects added with their evidence, and the findings."""
+from __future__ import annotations
+
+import html
+from typing import Any
+
+import numpy as np
+
+from bench.fit import prep
+from bench.fit.base import Dataset
+from bench.fit.report import _CSS, _new_figure, _thin, figure_to_img, html_table, plot_adev, plot_residuals
+
+
+def _before_after_vs_time(t: np.ndarray, before: np.ndarray, after: np.ndarray, title: str) -> str:
+    fig, ax = _new_figure(title, "time (h)", "residual (deg/h)")
+    s = _thin(t.size)
+    ax.plot(t[s] / 3600.0, before[s], lw=0.7, label="before (declared model)")
+    ax.plot(t[s] / 3600.0, after[s], lw=0.7, label="after (with effects added)")
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.legend(loc="best", fontsize=8)
+    return figure_to_img(fig, title)
+
+
+def _section(label: str, data: Dataset, before: np.ndarray, after: np.ndarray, probe: str, window_s: float) -> str:
+    t = np.asarray(data.time, float)
+    parts = [f"<h3>{html.escape(label)} run</h3>",
+             _before_after_vs_time(t, before, after, f"{label}: residual against time")]
+    if f"temp_{probe}" in data:
+        temp = np.asarray(data[f"temp_{probe}"], float)
+        rate = prep.rate_c_per_min(t, temp, window_s)
+        for name, res in (("before", before), ("after", after)):
+            parts.append(plot_residuals(res, temp, f"temp_{probe} (C)", f"{label}: residual {name} vs T"))
+            parts.append(plot_residuals(res, rate, "dT/dt (C/min)", f"{label}: residual {name} vs dT/dt"))
+    step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    parts.append(plot_adev({"before": before[np.isfinite(before)], "after": after[np.isfinite(after)]},
+                           1.0 / step, f"{label}: Allan deviation before / after"))
+    return "\n".join(parts)
+
+
+def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: Dataset,
+                             title: str = "Close-the-loop report") -> str:
+    body = [f"<h1>{html.escape(title)}</h1>",
+            f"<p>Declared model: <code>{html.escape(str(report['model']))}</code></p>"]
+    for ch, r in report["channels"].items():
+        body.append(f"<h2>Channel {html.escape(ch)}: {html.escape(r['verdict'])}</h2>")
+        body.append(f"<p>{html.escape(r['findings'])}</p>")
+        rows = [(k, r["before"][k], r["after"][k]) for k in r["before"]]
+        rows.append(("noise floor (ADEV at 100 s)", r["noise_floor_dph"], r["noise_floor_dph"]))
+        body.append(html_table(("metric (deg/h)", "before", "after"), rows, caption="error before / after"))
+        if r["effects_added"]:
+            body.append(html_table(
+                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "validation std100 (deg/h)"),
+                [(i, e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), ", ".join(e["terms"]),
+                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["validation_std100_dph"])
+                 for i, e in enumerate(r["effects_added"], 1)], caption="effects added, in order"))
+        body.append(html_table(("term", "coefficient"), list(r["final_coefficients"].items()),
+                               caption="final model coefficients"))
+        residuals = r.get("_residuals")
+        if residuals:
+            probe = r.get("primary_probe") or (train.temp_names() or [""])[0]
+            window = float(r.get("rate_window_s", 120.0))
+            for label, data, idx in (("training", train, 0), ("validation", validate, 1)):
+                body.append(_section(label, data, residuals["before"][idx], residuals["after"][idx], probe, window))
+    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\">"
+            f"<title>{html.escape(title)}</title><style>{_CSS}</style></head><body>\n"
+            + "\n".join(body) + "\n</body></html>\n")

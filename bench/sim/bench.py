@@ -1,0 +1,195 @@
+"""The whole simulated bench in one process: every device model wired to the others through physics,
+every protocol server on a real loopback transport, one shared clock.
+
+    bench = SimulatedBench(speed=3600, scenario="default")
+    bench.start()
+    bench.endpoints      # {"chamber_modbus_tcp": "127.0.0.1:PORT", "turntable": "socket://...", ...}
+    bench.config         # a BenchConfig whose drivers talk to the simulators unchanged
+    bench.stop()
+
+Wiring: the chamber air drives the gyro's thermal network; the turntable's angles give the gyro's
+orientation (Earth rate, gravity) and its axis rates the input rate; the power supply's output
+switches the gyro on (self-heating, warm-up) and off; the DS18B20 tree reads the gyro's probe nodes.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.clock import AcceleratedClock, Clock, SteppedClock
+from bench.config import (BenchConfig, ChamberConfig, GyroConfig, ProbeConfig, PsuConfig, TurntableConfig)
+from bench.devices.orientation import body_to_level, rotation_about
+from bench.sim.chamber import ChamberModel, ChamberSimulator
+from bench.sim.gyro import GyroStreamSimulator
+from bench.sim.physics import GyroPhysics, PhysicsInputs
+from bench.sim.psu import PsuModel, PsuSimulator
+from bench.sim.scenario import Scenario
+from bench.sim.turntable import TableModel, TurntableSimulator
+from bench.sim.w1 import W1TreeSimulator
+
+# gyro data rate (Hz, bench time) per clock speed: keeps the frame rate on the wire a few thousand/s
+_RATES = (1000, 500, 250, 100, 50, 25, 10, 5, 1)
+
+
+def default_data_rate(speed: float) -> int:
+    for rate in _RATES:
+        if rate * speed <= 5000:
+            return rate
+    return 1
+
+
+def probe_serials(names: list[str]) -> dict[str, str]:
+    """Stable 12-hex-digit DS18B20 serials for the scenario's probe names."""
+    return {name: f"0000{0xA1B2C300 + i:08x}" for i, name in enumerate(names)}
+
+
+class SimulatedBench:
+    def __init__(self, *, speed: float = 3600.0, scenario: str | Scenario = "default",
+                 clock: Clock | None = None, data_rate_hz: int | None = None, w1_root: str | None = None,
+                 bench_name: str = "sim1", latitude_deg: float | None = None,
+                 initial_air_c: float = 23.0) -> None:
+        self.clock = clock or AcceleratedClock(speed)
+        self.scenario = scenario if isinstance(scenario, Scenario) else _load_scenario(scenario)
+        if latitude_deg is not None:
+            self.scenario = self.scenario.with_changes(latitude_deg=latitude_deg)
+        speed_eff = 1e6 if isinstance(self.clock, SteppedClock) else self.clock.speed
+        self.data_rate_hz = data_rate_hz or default_data_rate(speed_eff)
+        self.bench_name = bench_name
+        self._own_w1 = w1_root is None
+        self.w1_root = Path(w1_root or tempfile.mkdtemp(prefix="bench-w1-"))
+        base = BenchConfig()
+        self.geometry = base.turntable.geometry
+        t0 = self.clock.now()
+        self.chamber_model = ChamberModel(air_c=initial_air_c, setpoint_c=initial_air_c)
+        self.chamber_model.advance_to(t0)
+        self.table_model = TableModel(axes=2)
+        self.table_model.advance_to(t0)
+        self.psu_model = PsuModel()
+        self.psu_model.advance_to(t0)
+        self._lock = threading.RLock()
+        self.physics = GyroPhysics(self.scenario, t0, PhysicsInputs(
+            self._air_c, self._body_to_level, self._table_rate_body, self._powered, self._power_on_time),
+            output_period_s=1.0 / self.data_rate_hz)
+        self.probe_names = list(self.scenario.probes)
+        self.serials = probe_serials(self.probe_names)
+        self.chamber = ChamberSimulator(self.chamber_model, self.clock)
+        self.turntable = TurntableSimulator(self.table_model, self.clock)
+        self.psu = PsuSimulator(self.psu_model, self.clock)
+        frame = "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a"
+        self.gyro = GyroStreamSimulator(self.physics, self.clock, self.data_rate_hz, frame)
+        self.w1 = W1TreeSimulator(self.physics, self.clock, self.w1_root, self.serials)
+        self.started = False
+
+    # ---------------------------------------------------------------- physics inputs
+    def _air_c(self, t: float) -> float:
+        self.chamber_model.advance_to(t)
+        return self.chamber_model.air_c
+
+    def _angles(self, t: float) -> tuple[float, float]:
+        self.table_model.advance_to(t)
+        a = self.table_model.angles()
+        return a[self.geometry.outer_axis_number - 1], a[self.geometry.inner_axis_number - 1]
+
+    def _body_to_level(self, t: float) -> np.ndarray:
+        return body_to_level(*self._angles(t), self.geometry)
+
+    def _table_rate_body(self, t: float) -> np.ndarray:
+        outer_deg, _ = self._angles(t)
+        r = self.table_model.rates()
+        w_outer = r[self.geometry.outer_axis_number - 1]
+        w_inner = r[self.geometry.inner_axis_number - 1]
+        outer_axis = np.asarray(self.geometry.outer_axis, float)
+        inner_axis = rotation_about(outer_axis, outer_deg) @ np.asarray(self.geometry.inner_axis, float)
+        omega_level = w_outer * outer_axis + w_inner * inner_axis
+        return self._body_to_level(t).T @ omega_level
+
+    def _powered(self, t: float) -> bool:
+        self.psu_model.advance_to(t)
+        return bool(self.psu_model.output_on)
+
+    def _power_on_time(self, t: float) -> float | None:
+        self.psu_model.advance_to(t)
+        return self.psu_model.on_since if self.psu_model.output_on else None
+
+    # ---------------------------------------------------------------- lifecycle
+    def start(self) -> "SimulatedBench":
+        if self.started:
+            return self
+        self.chamber.start()
+        for server in (self.turntable, self.psu, self.gyro, self.w1):
+            server.start()
+        self.started = True
+        return self
+
+    def stop(self) -> None:
+        for server in (self.w1, self.gyro, self.psu, self.turntable, self.chamber):
+            try:
+                server.stop()
+            except Exception:   # noqa: BLE001 - stopping must reach every server
+                pass
+        self.started = False
+        if self._own_w1:
+            shutil.rmtree(self.w1_root, ignore_errors=True)
+
+    def __enter__(self) -> "SimulatedBench":
+        return self.start()
+
+    def __exit__(self, *exc: Any) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- addresses
+    @property
+    def endpoints(self) -> dict[str, Any]:
+        return {
+            "chamber_modbus_tcp": self.chamber.tcp_address,
+            "chamber_modbus_rtu": self.chamber.rtu_url,
+            "turntable": self.turntable.url,
+            "gyro": self.gyro.url,
+            "psu": self.psu.url,
+            "w1_root": str(self.w1_root),
+            "probes": dict(self.serials),
+            "gyro_frame": "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a",
+            "gyro_data_rate_hz": self.data_rate_hz,
+            "clock": self.clock.to_json(),
+        }
+
+    def bench_config(self, *, chamber_transport: str = "modbus_tcp") -> BenchConfig:
+        """A bench config whose drivers talk to these simulators; with real hardware only the
+        addresses differ."""
+        e = self.endpoints
+        chamber_addr = e["chamber_modbus_tcp"] if chamber_transport == "modbus_tcp" else e["chamber_modbus_rtu"]
+        return BenchConfig(
+            name=self.bench_name,
+            latitude_deg=self.scenario.latitude_deg,
+            chamber=ChamberConfig(transport=chamber_transport, address=chamber_addr, inter_frame_delay_s=0.0,
+                                  baudrate=115200, timeout_s=2.0),
+            turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry),
+            gyro=GyroConfig(url=e["gyro"], frame=e["gyro_frame"], data_rate_hz=self.data_rate_hz,
+                            channels=tuple(self.scenario.channels)),
+            probes=ProbeConfig(w1_root=e["w1_root"], probes=dict(self.serials)),
+            psu=PsuConfig(url=e["psu"]),
+        )
+
+    @property
+    def config(self) -> BenchConfig:
+        return self.bench_config()
+
+    def write_endpoints(self, path: str | Path) -> None:
+        doc = dict(self.endpoints)
+        doc["bench_config"] = json.loads(self.config.model_dump_json())
+        tmp = Path(str(path) + ".tmp")
+        tmp.write_text(json.dumps(doc, indent=2))
+        tmp.replace(path)
+
+
+def _load_scenario(name_or_path: str) -> Scenario:
+    path = Path(name_or_path)
+    if path.suffix == ".json" or path.exists():
+        return Scenario.load(path)
+    return Scenario.builtin(name_or_path)
