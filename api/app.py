@@ -49,5 +49,16 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
 
 
 def app_from_env() -> FastAPI:
-    """Factory for ``uvicorn --factory api.app:app_from_env`` (database and tokens from the environment)."""
-    return create_app()
+    """Factory for ``uvicorn --factory api.app:app_from_env``: database (``BENCH_DATABASE_URL``), tokens
+    (``BENCH_TOKENS``) and the worker staleness limit (``BENCH_STALE_AFTER_S``, wall seconds, default 15)
+    from the environment."""
+    import os
+
+    stale = os.environ.get("BENCH_STALE_AFTER_S", "").strip()
+    try:
+        stale_s = float(stale) if stale else 15.0
+    except ValueError:
+        raise ValueError(f"BENCH_STALE_AFTER_S={stale!r} is not a number of seconds") from None
+    if not stale_s > 0:
+        raise ValueError(f"BENCH_STALE_AFTER_S must be > 0, got {stale_s}")
+    return create_app(stale_after_s=stale_s)

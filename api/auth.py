@@ -68,7 +68,8 @@ def _principal(request: Request, creds: HTTPAuthorizationCredentials | None = De
     for n, (token, role) in enumerate(tokens.items(), start=1):
         if hmac.compare_digest(given, token.encode()):
             return Principal(role=role, name=f"{role}#{n}")
-    raise Problem(401, "Unknown token", "the bearer token is not one of the configured tokens",
+    raise Problem(401, "Unknown token", "the bearer token is not one of the configured tokens"
+                  + ("" if tokens else " (none is configured on this server: set BENCH_TOKENS)"),
                   headers={"WWW-Authenticate": 'Bearer error="invalid_token"'})
 
 

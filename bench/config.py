@@ -72,6 +72,9 @@ class GyroConfig(_Strict):
     frame: Literal["kvh_a", "hrg"] = "kvh_a"
     data_rate_hz: float = Field(1000.0, gt=0, le=5000)
     output_units: Literal["deg/s", "rad/s"] = "deg/s"
+    # degrees C per count of the frame's temperature field: 0.01 with =TEMPUNITS in 1/100 C, 1.0 for
+    # older firmware that reports whole degrees
+    temp_scale: float = Field(0.01, gt=0)
     reconnect_s: float = Field(0.5, gt=0)       # wall seconds between reconnect attempts
     channels: tuple[str, ...] = ("x", "y", "z")
 

@@ -8,9 +8,17 @@ Recorded phases: ``warmup`` (the 10 min after power-on), ``ramp`` and ``cold_hol
 model (temperature, gradient and rate terms) is fitted at the end.  ``soak_h`` default 4 h stands
 for the paper's "several hours".
 
-NUE keeps the gyro's y axis vertical, so the gyro must be mounted with x (or z) on the table's inner
-axis; with the eight-position mounting (y on the inner axis) plan validation refuses NUE and names
-the reachable codes.  ``orientation=None`` leaves the table where it is.
+Orientation: S000 mounts the system 北天东 (NUE: x North, y Up, z East) for this test.  NUE keeps the
+gyro's y axis vertical, which the default two-axis geometry (outer axis vertical, inner axis along
+North at rest, gyro mounted ENU, so body y always lies on the horizontal inner axis) cannot reach.
+The default is therefore ``orientation=None``: the table is not moved and the gyro stays as mounted;
+the stored segments record the orientation code the table angles actually realise
+(``bench.devices.orientation.code_at`` with the bench's geometry, in ``bench.engine.sqlstore``).
+To reproduce S000's NUE, describe the test's mounting in the bench config:
+``turntable.geometry.mounting = "NUE"`` (gyro x North, y Up, z East with the table at 0, 0) makes the
+default run record NUE with the table at rest at zero; or use a geometry that reaches NUE (e.g. gyro x
+on the inner axis: ``inner_axis = [1, 0, 0]``) and pass ``--param orientation=NUE``.  Plan validation
+refuses a code the geometry cannot reach and names the reason.
 """
 from __future__ import annotations
 
@@ -20,12 +28,12 @@ from bench.engine import Fit, GyroPower, Orient, Plan, Ramp, SetChamber, Soak
 from procedures.common import _Params
 
 NAME = "thermal_ramp"
-DESCRIPTION = ("S000 3.3 dynamic test at NUE: soak +40 C, power on, 10 min, ramp -1 C/min to -30 C, "
-               "hold 20 min, recording throughout; dynamic model fit")
+DESCRIPTION = ("S000 3.3 dynamic test, gyro as mounted (S000 mounts it NUE): soak +40 C, power on, 10 min, "
+               "ramp -1 C/min to -30 C, hold 20 min, recording throughout; dynamic model fit")
 
 
 class Params(_Params):
-    orientation: str | None = "NUE"      # None: leave the table where it is
+    orientation: str | None = None       # None: leave the table (gyro as mounted); S000: "NUE"
     start_c: float = 40.0
     soak_h: float = Field(4.0, gt=0)
     warmup_min: float = Field(10.0, gt=0)

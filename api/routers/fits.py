@@ -16,6 +16,7 @@ from fastapi.responses import HTMLResponse
 from sqlalchemy import and_, func, select
 
 from api.auth import Principal, require
+from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
 from api.problems import Problem
 from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate
@@ -68,7 +69,7 @@ def _results(rows: list[Fit]) -> list[FitResult]:
 def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | None) -> tuple[Dataset, str | None]:
     """The recorded data of ``run_ids`` as one Dataset (runs one after the other, RUN_GAP_S apart) and their
     common gyro id.  Refuses unknown runs, runs of different gyros and runs with too little data."""
-    from bench.worker import run_dataset
+    from bench.storage.export import run_dataset
 
     gyro_ids, parts = set(), []
     with db.session() as s:
@@ -77,13 +78,14 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
             if run is None:
                 raise Problem(422, "Unknown run", f"run {rid} does not exist")
             gyro_ids.add(run.gyro_id)
-            lat = latitude_deg if latitude_deg is not None else (run.config_snapshot or {}).get("latitude_deg")
-            parts.append((rid, lat))
+            parts.append((rid, latitude_deg))
     if len(gyro_ids) > 1:
         raise Problem(422, "Runs of different gyros", f"runs {run_ids} belong to gyros {sorted(map(str, gyro_ids))}")
     datasets = []
     for rid, lat in parts:
-        ds = run_dataset(db, rid, lat)
+        ds = run_dataset(rid, db, latitude_deg=lat)
+        if "temp_point_c" in ds.columns:       # segment label (set point), not a probe: never a fit input
+            ds = Dataset({k: v for k, v in ds.columns.items() if k != "temp_point_c"}, ds.meta)
         if len(ds) < 10:
             raise Problem(422, "Not enough data", f"run {rid} has {len(ds)} recorded seconds stored; at least 10 "
                           f"are needed to fit")
@@ -110,36 +112,14 @@ def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
                  model: str | None = Query(None, min_length=1, max_length=300),
                  version: int | None = Query(None, ge=1, le=1_000_000,
                                              description="a specific version (needs model); accepted or not")):
-    if version is not None and model is None:
-        raise Problem(422, "Invalid input", "version needs model: a version number is per model")
     if not _valid_id(gyro_id):
         raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
-    f = Fit.__table__.c
-    stmt = select(f.id, f.model, f.channel, f.version, f.coefficients, f.result, f.accepted, f.created_at,
-                  f.run_ids).where(f.gyro_id == gyro_id)
-    if model is not None:
-        stmt = stmt.where(f.model == model)
-    stmt = stmt.where(f.version == version) if version is not None else stmt.where(f.accepted.is_(True))
-    with db.engine.connect() as conn:
-        rows = conn.execute(stmt.order_by(f.model, f.channel)).all()
-        if not rows:
-            known = conn.execute(select(func.count()).select_from(Gyro.__table__)
-                                 .where(Gyro.__table__.c.gyro_id == gyro_id)).scalar()
-    if not rows:
-        if not known:
-            raise Problem(404, "Gyro not found", f"no gyro {gyro_id!r} is stored")
-        what = f"{model} version {version}" if version else (f"accepted {model} fit" if model else "accepted fit")
-        raise Problem(404, "No coefficients", f"gyro {gyro_id!r} has no {what}")
-    models: dict[str, dict[str, Any]] = {}
-    for r in rows:
-        m = models.setdefault(r.model, {"model": r.model, "version": r.version, "fit_id": r.id,
-                                        "accepted": r.accepted, "created_at": iso(r.created_at),
-                                        "run_ids": r.run_ids, "channels": {}})
-        m["fit_id"] = min(m["fit_id"], r.id)
-        res = r.result or {}
-        m["channels"][r.channel] = {"coefficients": r.coefficients, "units": res.get("units"),
-                                    "validity": res.get("validity"), "definition": res.get("definition")}
-    return {"gyro_id": gyro_id, "models": list(models.values())}
+    try:
+        return load_coefficients(db, gyro_id, model=model, version=version)
+    except ValueError as exc:
+        raise Problem(422, "Invalid input", str(exc)) from None
+    except NoCoefficients as exc:
+        raise Problem(404, "No coefficients" if exc.gyro_known else "Gyro not found", str(exc)) from None
 
 
 def _valid_id(text: str) -> bool:

@@ -46,12 +46,12 @@ _ERROR_REPLY = re.compile(rb"ERROR,([^\r\n]*)\r\n")
 class GyroSerialLink:
     """``GyroLink`` over a pyserial URL.  ``start()`` raises ``LinkDown`` if the port cannot be opened."""
 
-    def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float = 0.01,
+    def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float | None = None,
                  queue_limit: int = 2_000_000, read_timeout_s: float = 0.01) -> None:
         self.config = config
         self.clock = clock
         self.stats = LinkStats()
-        self.decoder = FrameDecoder(config.frame, temp_scale=temp_scale, stats=self.stats)
+        self.decoder = FrameDecoder(config.frame, temp_scale=config.temp_scale if temp_scale is None else temp_scale, stats=self.stats)
         self.queue_limit = queue_limit
         self.queue_overflows = 0
         self.read_timeout_s = read_timeout_s

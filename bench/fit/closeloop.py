@@ -73,15 +73,24 @@ def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
 
+def _finite_rows(X: np.ndarray, y: np.ndarray | None = None) -> np.ndarray:
+    ok = np.all(np.isfinite(X), axis=1) if X.ndim == 2 else np.isfinite(X)
+    return ok & np.isfinite(y) if y is not None else ok
+
+
 def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least squares on column-scaled X (numerically safe for powers of temperature)."""
-    scale = np.sqrt(np.nanmean(X ** 2, axis=0))
+    """Least squares on column-scaled X (numerically safe for powers of temperature); rows with a
+    missing value (gyro off, probe lost) are left out."""
+    ok = _finite_rows(X, y)
+    X, y = X[ok], y[ok]
+    scale = np.sqrt(np.mean(X ** 2, axis=0))
     scale[scale == 0] = 1.0
     beta, *_ = np.linalg.lstsq(X / scale, y, rcond=None)
     return beta / scale
 
 
 def lag1(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
     x = x - x.mean()
     den = float(np.dot(x, x))
     return float(np.dot(x[1:], x[:-1]) / den) if den > 0 else 0.0
@@ -91,6 +100,8 @@ def hac_wald_p(X: np.ndarray, y: np.ndarray, new_cols: list[int]) -> float:
     """p-value of the joint Wald test that the ``new_cols`` coefficients are 0, HAC covariance."""
     import statsmodels.api as sm
 
+    ok = _finite_rows(X, y)
+    X, y = X[ok], y[ok]
     n = len(y)
     maxlags = max(1, int(np.floor(4 * (n / 100.0) ** (2.0 / 9.0))))
     scale = np.sqrt(np.mean(X ** 2, axis=0))
@@ -196,9 +207,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     for _ in range(MAX_EFFECTS):
         Xb = block_means(X_tr, t_tr)
         base_res = y_tr_blocks - Xb @ lstsq(Xb, y_tr_blocks)
-        ssr0 = float(np.sum(base_res ** 2))
+        ssr0 = float(np.nansum(base_res ** 2))
         rho = min(max(lag1(base_res), 0.0), 0.95)
-        n = len(base_res)
+        n = int(np.isfinite(base_res).sum())
         n_eff = max(10.0, n * (1 - rho) / (1 + rho))
         best_by_kind: dict[str, dict[str, Any]] = {}
         for cand in library:
@@ -290,13 +301,11 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
 def _score(cand, cols_tr, X_tr, Xb, y_blocks, t_tr, ssr0, n_eff) -> dict[str, Any] | None:
     """Delta-BIC of adding the candidate's columns to the current design (100-s block means)."""
     Z_tr = np.column_stack(list(cols_tr.values()))
-    if not np.all(np.isfinite(Z_tr)):
-        return None
     Xab = block_means(np.column_stack([X_tr, Z_tr]), t_tr)
     rank_gain = _rank(Xab) - _rank(Xb)
     if rank_gain <= 0:
         return None
-    ssr1 = float(np.sum((y_blocks - Xab @ lstsq(Xab, y_blocks)) ** 2))
+    ssr1 = float(np.nansum((y_blocks - Xab @ lstsq(Xab, y_blocks)) ** 2))
     if ssr1 <= 0 or ssr1 >= ssr0:
         return None
     dbic = n_eff * np.log(ssr0 / ssr1) - (rank_gain + cand.n_nonlinear) * np.log(n_eff)
@@ -305,6 +314,7 @@ def _score(cand, cols_tr, X_tr, Xb, y_blocks, t_tr, ssr0, n_eff) -> dict[str, An
 
 
 def _rank(x: np.ndarray) -> int:
+    x = x[_finite_rows(x)]
     scale = np.sqrt(np.mean(x ** 2, axis=0))
     return int(np.linalg.matrix_rank(x / np.where(scale > 0, scale, 1.0)))
 

@@ -72,18 +72,9 @@ from bench.devices import kvh
 
 ALLOWED_DATA_RATES = kvh.ALLOWED_DATA_RATES
 _RAD_PER_DEG = math.pi / 180.0
+from bench.sim.physics import GyroSample  # noqa: E402  (the one sample type; re-exported)
+
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class GyroSample:
-    """What the gyro would output at one instant (the physics model returns exactly this)."""
-
-    rate_dps: tuple[float, float, float]        # gyro output as the device outputs it, deg/s
-    accel_g: tuple[float, float, float]
-    temperature_c: float                        # internal temperature sensor
-    freq_hz: tuple[float, float, float] | None = None   # HRG resonance frequencies
-    valid: bool = True
 
 
 class GyroSource(Protocol):
@@ -412,12 +403,18 @@ class GyroStreamSimulator:
             due = self.max_backlog_frames
         times = [self._frame_time(self._next_index + k) for k in range(due)]
         self._next_index += due
-        frames = [self._build_frame(t) for t in times]
+        many = getattr(self.source, "sample_many", None)
+        if many is not None:        # vectorised physics: same values, a fraction of the cost per frame
+            samples = many(times)
+        else:
+            samples = []
+            for t in times:
+                self.source.advance_to(t)
+                samples.append(self.source.sample(t))
+        frames = [self._build_frame(t, s) for t, s in zip(times, samples)]
         self._send_frames(times, frames)
 
-    def _build_frame(self, t: float) -> tuple[int, bytes]:
-        self.source.advance_to(t)
-        s = self.source.sample(t)
+    def _build_frame(self, t: float, s: GyroSample) -> tuple[int, bytes]:
         if len(s.rate_dps) != 3 or len(s.accel_g) != 3:
             raise ValueError(f"gyro source {type(self.source).__name__} returned a sample without 3 rates and "
                              f"3 accelerations at t={t}: {s!r}")

@@ -45,7 +45,7 @@ _MAX_CHUNK = 200_000          # grid steps integrated per vectorised chunk (memo
 
 @dataclass(frozen=True)
 class GyroSample:
-    """One gyro output sample (same fields as ``bench.sim.gyro.GyroSample``).
+    """One gyro output sample, the unit the gyro stream simulator turns into a frame.
 
     rate_dps: as output by the device in deg/s (bias, Earth rate, table rate through scale factor
     and installation matrix, noise); accel_g: specific force on body axes in g; temperature_c: the
@@ -55,8 +55,8 @@ class GyroSample:
     rate_dps: tuple[float, float, float]
     accel_g: tuple[float, float, float]
     temperature_c: float
-    freq_hz: tuple[float, float, float] | None
-    valid: bool
+    freq_hz: tuple[float, float, float] | None = None
+    valid: bool = True
 
 
 # ------------------------------------------------------------------------------------------------

@@ -172,3 +172,92 @@ def export_parquet(db: Database, run_id: int, path: str | Path, *,
                    resolution: Literal["second", "frame"] = "second") -> Path:
     columns = export_columns(db, run_id, resolution=resolution)
     return write_parquet(columns, path, {"run_id": str(run_id), "resolution": resolution, "gyro_unit": "deg/h"})
+
+
+# ---------------------------------------------------------------- measured-data dataset of a run
+
+
+
+def _segment_label_mask(db: Database, run_id: int, t: np.ndarray, where: dict) -> np.ndarray:
+    """Rows whose bench time lies in a segment whose labels hold every ``where`` item."""
+    with db.session() as s:
+        segs = list(s.scalars(select(Segment).where(Segment.run_id == run_id)))
+    mask = np.zeros(t.shape, dtype=bool)
+    for seg in segs:
+        labels = seg.labels or {}
+        if all(labels.get(k) == v for k, v in where.items()):
+            end = math.inf if seg.t_end is None else seg.t_end
+            mask |= (t >= seg.t_start) & (t < end)
+    return mask
+
+
+def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float | None = None,
+                where: dict | None = None, recorded_only: bool = True,
+                max_age_s: float | None = None):
+    """A stored run as a measured-data ``bench.fit.base.Dataset`` (the columns of measured-data CSV v1).
+
+    Rows: 1-s means (``export_columns(resolution="second")``) of the seconds with valid frames, only
+    those inside recorded segments when ``recorded_only`` (and, with ``where``, only segments whose
+    labels hold every item, e.g. ``{"set": "model"}``).  Columns: ``time_s`` (s since the run's first
+    frame second), ``gyro_<ch>`` (deg/h, Earth rate not removed), ``temp_<probe>`` (DS18B20; the
+    gyro's own sensor as ``temp_gyro`` only when no probe was read), ``freq_<ch>`` (HRG),
+    ``orientation`` (segment label, empty = unknown), ``power`` (PSU output 1/0), ``chamber_pv``,
+    ``chamber_sp``.  Metadata: run_id, procedure, gyro_id, gyro_type, sample_period_s = 1,
+    bench_time0_s (bench time of ``time_s`` 0) and ``latitude_deg`` (argument, else the run's config
+    snapshot) only when every row has an orientation, so the Earth rate is removed only where it can
+    be.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
+    ``max_age_s`` (previous-sample hold of probes/telemetry) defaults to the run's recorded engine
+    periods (``runs.live["engine_config"]``) x 2, at least 30 s.
+    """
+    from bench.fit.base import Dataset
+    from bench.storage.db import open_database
+
+    own = db is None
+    if own:
+        db = open_database()
+    try:
+        with db.session() as s:
+            run = s.get(Run, int(run_id))
+            if run is None:
+                raise StorageError(f"run {run_id} does not exist in {db.url}")
+            snapshot = dict(run.config_snapshot or {})
+            live = dict(run.live or {})
+            meta = {"run_id": str(run.id), "procedure": run.procedure, "sample_period_s": "1"}
+            if run.gyro_id:
+                meta["gyro_id"] = run.gyro_id
+        gyro_cfg = snapshot.get("gyro") or {}
+        if gyro_cfg.get("frame"):
+            meta["gyro_type"] = str(gyro_cfg["frame"])
+        if max_age_s is None:
+            ecfg = live.get("engine_config") or {}
+            periods = [float(ecfg.get(k, 0.0) or 0.0) for k in ("telemetry_period_s", "probe_period_s", "max_tick_s")]
+            max_age_s = max(30.0, 2.0 * max(periods))
+        cols = export_columns(db, int(run_id), resolution="second", max_age_s=max_age_s)
+        t = cols["bench_time_s"]
+        keep = cols["n_frames"] > 0
+        if recorded_only:
+            keep &= cols["segment_kind"] != ""
+        if where:
+            keep &= _segment_label_mask(db, int(run_id), t, where)
+        out: dict[str, np.ndarray] = {"time_s": cols["time_s"][keep]}
+        if keep.any():
+            meta["bench_time0_s"] = repr(float(t[0] - cols["time_s"][0]))
+        for name in sorted(cols):
+            if name.startswith(("gyro_", "freq_")):
+                out[name] = cols[name][keep]
+        probes = [n for n in sorted(cols) if n.startswith("temp_") and n not in ("temp_gyro", "temp_point_c")]
+        for name in probes or (["temp_gyro"] if "temp_gyro" in cols else []):
+            out[name] = cols[name][keep]
+        out["orientation"] = np.asarray(cols["orientation"][keep]).astype(str)
+        if "psu_on" in cols:
+            out["power"] = cols["psu_on"][keep]
+        for name in ("chamber_pv", "chamber_sp"):
+            if name in cols:
+                out[name] = cols[name][keep]
+        lat = latitude_deg if latitude_deg is not None else snapshot.get("latitude_deg")
+        if lat is not None and out["orientation"].size and bool(np.all(out["orientation"] != "")):
+            meta["latitude_deg"] = repr(float(lat))
+        return Dataset(out, meta)
+    finally:
+        if own:
+            db.dispose()

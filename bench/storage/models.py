@@ -17,8 +17,8 @@ time offsets from ``t_first`` in microseconds and a little-endian int16 array of
 temperature in 1/100 degC (the wire unit of the temperature is a device setting, so the decoded
 value is kept rather than re-derived).  Decoded rates and accelerations are recomputed from the raw
 bytes with numpy (``bench.storage.codec``).  ``frame_seconds`` keeps, per bench second, the sums
-needed for 1-s means, written in the same transaction as the chunks, so the 1-s query never
-decodes raw frames.
+needed for 1-s means (packed 16 seconds to a row), written in the same transaction as the chunks,
+so the 1-s query never decodes raw frames.
 """
 from __future__ import annotations
 

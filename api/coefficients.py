@@ -1,0 +1,52 @@
+"""Reading a gyro's coefficients (shared by ``GET /gyros/{id}/coefficients`` and ``bench coefficients``).
+
+The answer holds, per model, the latest *accepted* version (or the requested ``version``), with each
+channel's coefficients, units, validity range and model definition.  One indexed query on
+``fits (gyro_id, model, channel, version)``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import func, select
+
+from bench.storage.db import Database
+from bench.storage.models import Fit, Gyro
+from api.views import iso
+
+
+class NoCoefficients(LookupError):
+    def __init__(self, message: str, gyro_known: bool) -> None:
+        super().__init__(message)
+        self.gyro_known = gyro_known
+
+
+def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
+                      version: int | None = None) -> dict[str, Any]:
+    if version is not None and model is None:
+        raise ValueError("version needs model: a version number is per model")
+    f = Fit.__table__.c
+    stmt = select(f.id, f.model, f.channel, f.version, f.coefficients, f.result, f.accepted, f.created_at,
+                  f.run_ids).where(f.gyro_id == gyro_id)
+    if model is not None:
+        stmt = stmt.where(f.model == model)
+    stmt = stmt.where(f.version == version) if version is not None else stmt.where(f.accepted.is_(True))
+    with db.engine.connect() as conn:
+        rows = conn.execute(stmt.order_by(f.model, f.channel)).all()
+        known = bool(rows) or bool(conn.execute(select(func.count()).select_from(Gyro.__table__)
+                                                .where(Gyro.__table__.c.gyro_id == gyro_id)).scalar())
+    if not rows:
+        if not known:
+            raise NoCoefficients(f"no gyro {gyro_id!r} is stored", False)
+        what = f"{model} version {version}" if version else (f"accepted {model} fit" if model else "accepted fit")
+        raise NoCoefficients(f"gyro {gyro_id!r} has no {what}", True)
+    models: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        m = models.setdefault(r.model, {"model": r.model, "version": r.version, "fit_id": r.id,
+                                        "accepted": r.accepted, "created_at": iso(r.created_at),
+                                        "run_ids": r.run_ids, "channels": {}})
+        m["fit_id"] = min(m["fit_id"], r.id)
+        res = r.result or {}
+        m["channels"][r.channel] = {"coefficients": r.coefficients, "units": res.get("units"),
+                                    "validity": res.get("validity"), "definition": res.get("definition")}
+    return {"gyro_id": gyro_id, "models": list(models.values())}

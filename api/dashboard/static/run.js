@@ -1,0 +1,313 @@
+/* /ui/runs/{id} : one run.  State from GET /runs/{id}; pause / resume / stop / abort (POST
+   /runs/{id}/<command>); live plots of chamber set point and air temperature, probe temperatures and
+   gyro output from GET /runs/{id}/data (aligned 1-s means, fetched incrementally with t_from and
+   decimated with every=N so a long run stays near MAX_POINTS points); events and status changes live
+   from the SSE stream GET /runs/{id}/events?follow=true (read with fetch, which can send the token). */
+"use strict";
+
+const RUN_ID = Number(pathParam(2));
+const TERMINAL = ["completed", "aborted", "failed"];
+const MAX_POINTS = 2000;
+const CONTROLS = {
+  pause: { label: "Pause", allowed: ["running", "suspended"] },
+  resume: { label: "Resume", allowed: ["paused"] },
+  stop: { label: "Stop", allowed: ["queued", "running", "paused", "stopping", "suspended"],
+          confirm: "Stop the run? It finishes the current recording, then puts the bench in a safe state." },
+  abort: { label: "Abort", allowed: ["queued", "running", "paused", "stopping", "suspended"], danger: true,
+           confirm: "Abort the run now? The bench goes to a safe state immediately." },
+};
+
+const state = {
+  run: null,
+  series: { t: [], cols: {} },   // plotted data: t = hours since the first second, cols[name] = values
+  lastBenchT: null,
+  every: 1,
+  loadingData: false,
+  refreshing: false,
+  refreshAgain: false,
+  events: [],
+  lastEventId: 0,
+  stream: null,
+  plots: {},
+};
+
+/* -------------------------------------------------------------------------------- run state */
+function dl(pairs) {
+  return el("dl.kv", pairs.flatMap(([k, v]) => [el("dt", k), el("dd", v === null || v === undefined ? "–" : v)]));
+}
+
+function renderSummary(run) {
+  setTitle(`Run #${run.id}: ${run.procedure}`);
+  const step = run.step ? `${run.step.index + 1} of ${run.step.n_steps}: ${run.step.kind} (${run.step.status})` : "–";
+  const box = document.getElementById("summary");
+  box.replaceChildren(
+    el("div.grid",
+      dl([
+        ["Status", statusBadge(run.status, run.outcome)],
+        ["Progress", progressBar(run.progress_percent)],
+        ["Step", step],
+        ["Gyro", run.gyro_id ? el("a", { href: `/ui/gyros/${encodeURIComponent(run.gyro_id)}` }, run.gyro_id) : "–"],
+        ["Bench", run.bench],
+      ]),
+      dl([
+        ["ETA", run.eta_utc ? fmtTime(run.eta_utc) : "–"],
+        ["Elapsed (bench)", fmtDuration(run.elapsed_bench_s)],
+        ["Remaining (bench)", fmtDuration(run.remaining_bench_s)],
+        ["Estimated total", fmtDuration(run.estimated_total_bench_s)],
+        ["Worker", run.worker ? `${run.worker}${run.worker_alive === false ? " (not answering)" : ""}` : "–"],
+      ]),
+      dl([
+        ["Operator", run.operator],
+        ["Created", fmtTime(run.created_at)],
+        ["Scheduled", run.start_at ? fmtTime(run.start_at) : "–"],
+        ["Started", fmtTime(run.started_at)],
+        ["Finished", fmtTime(run.finished_at)],
+      ])),
+    run.error ? el("p.alert.error", run.error) : null,
+    (run.pending_requests || []).length
+      ? el("p.muted", `Pending requests: ${run.pending_requests.map((r) => r.command).join(", ")} (the worker applies them at its next tick)`)
+      : null);
+  document.getElementById("run-status").textContent = run.status;
+  document.getElementById("run-progress").textContent = String(run.progress_percent);
+  for (const [command, spec] of Object.entries(CONTROLS)) {
+    document.getElementById(`btn-${command}`).disabled = !spec.allowed.includes(run.status);
+  }
+  renderLatest(run.latest || {});
+  renderSteps(run);
+  document.getElementById("params-json").textContent = JSON.stringify(run.parameters, null, 2);
+}
+
+function renderLatest(latest) {
+  const rows = [];
+  if (latest.chamber) {
+    rows.push(["Chamber air", `${fmtNum(latest.chamber.pv_c)} °C (set point ${fmtNum(latest.chamber.setpoint_c)} °C, ramp ${fmtNum(latest.chamber.ramp_setpoint_c)} °C)`]);
+    if (latest.chamber.alarm) rows.push(["Chamber alarm", String(latest.chamber.alarm)]);
+  }
+  if (latest.probes) {
+    for (const [name, c] of Object.entries(latest.probes.celsius || {})) {
+      const fault = (latest.probes.faults || {})[name];
+      rows.push([`Probe ${name}`, fault ? `fault: ${fault}` : `${fmtNum(c)} °C`]);
+    }
+  }
+  if (latest.gyro) {
+    const m = latest.gyro.mean_1s;
+    rows.push(["Gyro frames", `${latest.gyro.frames}`]);
+    if (m) rows.push(["Gyro 1-s mean", `${m.gyro.map((v) => fmtNum(v, 5)).join(", ")} (${m.output_unit}); sensor ${fmtNum(m.temperature_c)} °C`]);
+    if (latest.gyro.mean_1s_error) rows.push(["Gyro", latest.gyro.mean_1s_error]);
+  }
+  if (latest.turntable) rows.push(["Turntable", `axis 1 ${fmtNum(latest.turntable.axis1_deg)}°, axis 2 ${fmtNum(latest.turntable.axis2_deg)}°`]);
+  if (latest.psu) rows.push(["Power supply", `${latest.psu.on ? "on" : "off"}, ${fmtNum(latest.psu.volts)} V, ${fmtNum(latest.psu.amps)} A`]);
+  document.getElementById("latest").replaceChildren(rows.length ? dl(rows) : el("p.muted", "No readings yet."));
+}
+
+function renderSteps(run) {
+  const rows = (run.steps || []).map((s) => el("tr", { class: s.index === run.step_index ? "current" : null },
+    el("td.num", String(s.index + 1)), el("td", s.kind), el("td", statusBadge(s.status)),
+    el("td.num", fmtNum(s.started_t === null ? null : s.started_t, 10)), el("td.num", fmtNum(s.finished_t === null ? null : s.finished_t, 10))));
+  const extra = [];
+  for (const g of run.gaps || []) extra.push(el("li", `gap ${fmtNum(g.t_from, 10)}–${fmtNum(g.t_to, 10)} s: ${g.reason} (${g.frames_missing} frames missing)`));
+  for (const s of run.suspensions || []) extra.push(el("li", `suspended ${fmtNum(s.t_from, 10)}–${fmtNum(s.t_to, 10)} s: ${s.reason}`));
+  document.getElementById("steps").replaceChildren(
+    el("table", el("thead", el("tr", ["#", "Step", "Status", "Started (bench s)", "Finished (bench s)"].map((h) => el("th", h)))),
+      el("tbody", rows.length ? rows : el("tr", el("td.muted", { colSpan: 5 }, "The worker has not planned the steps yet.")))),
+    extra.length ? el("ul", extra) : null,
+    run.fits ? el("pre", JSON.stringify(run.fits, null, 2)) : null);
+}
+
+/* -------------------------------------------------------------------------------- data + plots */
+function appendData(columns) {
+  const t = columns.bench_time_s || [];
+  if (!t.length) return 0;
+  const s = state.series;
+  if (state.t0 === undefined) state.t0 = Math.floor(t[0]);
+  const names = Object.keys(columns).filter((n) => n === "chamber_sp" || n === "chamber_pv" || n.startsWith("temp_") || n.startsWith("gyro_"));
+  const before = s.t.length;
+  for (let i = 0; i < t.length; i++) {
+    if (state.lastBenchT !== null && t[i] <= state.lastBenchT) continue;
+    s.t.push((t[i] - state.t0) / 3600);
+    for (const n of names) {
+      if (!s.cols[n]) s.cols[n] = new Array(s.t.length - 1).fill(null);
+      s.cols[n].push(columns[n][i]);
+    }
+    for (const n of Object.keys(s.cols)) {
+      if (s.cols[n].length < s.t.length) s.cols[n].push(null);
+    }
+    state.lastBenchT = t[i];
+  }
+  // keep the plots light: past MAX_POINTS, drop every other point and fetch at half the rate
+  while (s.t.length > MAX_POINTS) {
+    s.t = s.t.filter((_, i) => i % 2 === 0);
+    for (const n of Object.keys(s.cols)) s.cols[n] = s.cols[n].filter((_, i) => i % 2 === 0);
+    state.every *= 2;
+  }
+  return s.t.length - before;
+}
+
+function drawPlots() {
+  const s = state.series;
+  const pick = (prefix) => Object.keys(s.cols).filter((n) => n.startsWith(prefix)).sort();
+  state.plots.chamber.setData(s.t, [
+    { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
+    { name: "chamber air", values: s.cols.chamber_pv || [], color: "#d62728" },
+  ]);
+  state.plots.probes.setData(s.t, pick("temp_").map((n) => ({ name: n.replace(/^temp_/, ""), values: s.cols[n] })));
+  state.plots.gyro.setData(s.t, pick("gyro_").map((n) => ({ name: n.replace(/^gyro_/, ""), values: s.cols[n] })));
+  document.getElementById("data-info").textContent = s.t.length
+    ? `${s.t.length} points, every ${state.every} s of data (1-s means)` : "";
+}
+
+async function loadData() {
+  if (state.loadingData) return;
+  state.loadingData = true;
+  try {
+    // first load: size the decimation from the run's elapsed bench time
+    if (state.lastBenchT === null && state.run && state.run.elapsed_bench_s) {
+      state.every = Math.max(1, Math.ceil(state.run.elapsed_bench_s / MAX_POINTS));
+    }
+    const from = state.lastBenchT === null ? "" : `&t_from=${encodeURIComponent(state.lastBenchT + 0.5)}`;
+    const doc = await api(`/runs/${RUN_ID}/data?stream=seconds&format=json&every=${state.every}${from}`);
+    if (appendData(doc.columns) > 0 || !state.drawnOnce) {
+      drawPlots();
+      state.drawnOnce = true;
+    }
+  } catch (err) {
+    reportError(err, "load the run's data");
+  } finally {
+    state.loadingData = false;
+  }
+}
+
+/* -------------------------------------------------------------------------------- refresh loop */
+async function refresh() {
+  if (state.refreshing) {
+    state.refreshAgain = true;
+    return;
+  }
+  state.refreshing = true;
+  try {
+    const run = await api(`/runs/${RUN_ID}`);
+    state.run = run;
+    renderSummary(run);
+    await loadData();
+  } catch (err) {
+    reportError(err, `run ${RUN_ID}`);
+  } finally {
+    state.refreshing = false;
+    if (state.refreshAgain) {
+      state.refreshAgain = false;
+      setTimeout(refresh, 300);
+    }
+  }
+}
+
+/* -------------------------------------------------------------------------------- events */
+function addEvent(e) {
+  if (e.id <= state.lastEventId) return;
+  state.lastEventId = e.id;
+  state.events.unshift(e);
+  if (state.events.length > 300) state.events.pop();
+  const list = document.getElementById("events");
+  list.prepend(el("li", { class: `level-${e.level || "info"}`, dataset: { kind: e.kind } },
+    el("span.muted", `${fmtTime(e.time)} `), el("strong", e.kind), ` ${e.message || ""}`));
+  while (list.children.length > 300) list.lastChild.remove();
+}
+
+/* Refresh at most once a second however fast status events arrive. */
+function scheduleRefresh() {
+  if (state.refreshTimer) return;
+  const wait = Math.max(0, 1000 - (Date.now() - (state.lastRefreshAt || 0)));
+  state.refreshTimer = setTimeout(() => {
+    state.refreshTimer = null;
+    state.lastRefreshAt = Date.now();
+    refresh();
+  }, wait);
+}
+
+async function followLoop() {
+  if (state.following) return;
+  state.following = true;
+  try {
+    for (;;) {
+      const controller = new AbortController();
+      state.stream = controller;
+      try {
+        await followEvents(`/runs/${RUN_ID}/events?follow=true&after=${state.lastEventId}`, (kind, data) => {
+          if (kind === "status") {
+            document.getElementById("live").textContent = `live: ${data.status}, ${fmtNum(data.progress_percent, 3)} %`;
+            scheduleRefresh();
+          } else if (kind !== "end" && data && typeof data === "object" && data.id !== undefined) {
+            addEvent(data);
+          }
+        }, controller);
+      } catch (err) {
+        if (err instanceof ApiError && [401, 403, 404].includes(err.status)) {
+          reportError(err, "live events");
+          return;
+        }
+        if (err.name === "AbortError") return;
+        document.getElementById("live").textContent = "live events interrupted; reconnecting…";
+      }
+      await refresh();
+      if (state.run && TERMINAL.includes(state.run.status)) break;
+      await new Promise((resolve) => setTimeout(resolve, 1500));
+    }
+    document.getElementById("live").textContent = `run ${state.run.status}`;
+  } finally {
+    state.following = false;
+  }
+}
+
+/* -------------------------------------------------------------------------------- controls */
+async function control(command) {
+  const spec = CONTROLS[command];
+  if (spec.confirm && !window.confirm(spec.confirm)) return;
+  clearAlert();
+  try {
+    const answer = await api(`/runs/${RUN_ID}/${command}`, { method: "POST" });
+    showAlert(answer.cancelled ? `Run #${RUN_ID} cancelled before it started.`
+      : `${spec.label} requested: ${answer.detail || "sent"}.`, "ok");
+  } catch (err) {
+    reportError(err, `${command} run ${RUN_ID}`);
+  }
+  refresh();
+}
+
+function build() {
+  const plotCard = (id, title) => el("div.card", el("h2", title), el(`canvas#plot-${id}.plot`));
+  content().replaceChildren(
+    el("div.card",
+      el("div#summary", el("p.muted", "Loading…")),
+      el("div.actions",
+        Object.entries(CONTROLS).map(([command, spec]) => el(`button#btn-${command}`, {
+          type: "button", class: spec.danger ? "danger" : null, disabled: true, on: { click: () => control(command) },
+        }, spec.label)),
+        el("button#btn-csv.secondary", { type: "button", on: { click: () => downloadWithToken(`/runs/${RUN_ID}/data?stream=seconds&format=csv`, `run${RUN_ID}-seconds.csv`) } }, "Download 1-s data (CSV)"),
+        el("span#live.muted")),
+      el("span#run-status", { hidden: true }), el("span#run-progress", { hidden: true })),
+    el("div.grid",
+      el("div.card", el("h2", "Latest readings"), el("div#latest")),
+      el("div.card", el("h2", "Events"), el("ul#events.events"))),
+    plotCard("chamber", "Chamber: set point and air temperature (°C)"),
+    plotCard("probes", "Probe temperatures (°C)"),
+    plotCard("gyro", "Gyro output, 1-s means (deg/h)"),
+    el("p#data-info.muted"),
+    el("div.card", el("h2", "Steps"), el("div#steps")),
+    el("div.card", el("h2", "Parameters"), el("pre#params-json")));
+  const xLabel = "bench time since the first recorded second (h)";
+  state.plots.chamber = new LinePlot(document.getElementById("plot-chamber"), { xLabel, yLabel: "°C" });
+  state.plots.probes = new LinePlot(document.getElementById("plot-probes"), { xLabel, yLabel: "°C" });
+  state.plots.gyro = new LinePlot(document.getElementById("plot-gyro"), { xLabel, yLabel: "deg/h" });
+}
+
+initPage();
+if (!Number.isInteger(RUN_ID) || RUN_ID < 1) {
+  showAlert(`Not a run id in the address: ${location.pathname}`);
+} else {
+  build();
+  setInterval(() => {
+    if (state.run && !TERMINAL.includes(state.run.status)) refresh();
+  }, 3000);
+  onTokenReady(() => {
+    refresh().then(followLoop);
+  });
+}

@@ -1,0 +1,497 @@
+"""``bench run``, ``bench resume``, ``bench runs list|show`` and ``bench export``.
+
+``bench run PROCEDURE --gyro ID [--sim] [--speed K] [--param key=value ...] [--json]``
+    Validates the parameters through the procedure's pydantic ``Params`` (``--param stable.tol_c=0.5``
+    reaches nested fields; values are JSON when they parse as JSON, else text; ``key=null`` gives
+    None), builds and validates the plan against the bench (a bad plan is refused with the reason
+    before a run row exists or anything moves), creates the run, prints ``run <ID>`` on stdout,
+    shows a progress bar on stderr and executes the plan.  With ``--json`` the last stdout line is
+    one JSON object (run_id, status, outcome, frames, gaps, suspensions...).
+    ``--sim`` starts a ``SimulatedBench`` in this process at ``--speed`` (bench seconds per wall
+    second) and uses its bench config; otherwise the config comes from ``--config PATH`` or
+    ``$BENCH_CONFIG`` and time is real, or with ``--sim-endpoints FILE`` from a simulated bench running in
+    another process (``bench sim up --endpoints-json FILE``: its bench config and clock; the simulator
+    then has a CPU core of its own).
+    Ctrl-C (SIGINT) asks the engine to stop after the current recording; a second Ctrl-C or SIGTERM
+    aborts to the safe state at once.  Exit code 0 when the run completed (or stopped on request),
+    1 when it was aborted or failed, 2 for refused input.
+
+``bench resume RUN``
+    Continues a run interrupted by a crash or kill from its last checkpoint (same output as
+    ``run``).  A ``--sim`` run restarts a simulated bench with the recorded speed, scenario and data
+    rate on the *same* accelerated clock (its bench time went on while nothing ran, so the
+    interruption is a real gap in bench time).  The simulated physics restarts from the current
+    conditions: the chamber air at the last recorded chamber temperature, the table at zero (the
+    engine moves it back), the power supply off (the engine restores it) and the gyro's thermal
+    state at the chamber air; a real bench would not have lost its thermal state.  Refused when the
+    run ended or its process still runs (same host: pid alive; else a heartbeat fresher than 10 s)
+    unless ``--force``.
+
+``bench runs list`` / ``bench runs show RUN [--json]``; ``bench export RUN --format csv|parquet [-o FILE]``
+    (stdout by default; csv is measured-data CSV v1 from ``bench.storage.export.run_dataset``; parquet
+    holds every export column at 1 s or per frame).
+
+Database: ``--db URL``, else ``$BENCH_DATABASE_URL``, else the SQLite file ``var/bench.sqlite``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from bench.commands.common import fail, guarded
+
+runs_app = typer.Typer(help="Stored runs: list and show.", no_args_is_help=True)
+HEARTBEAT_S = 1.0
+CONFIG_ENV = "BENCH_CONFIG"
+
+
+def register(app: typer.Typer) -> None:
+    app.command("run")(run_command)
+    app.command("resume")(resume_command)
+    app.add_typer(runs_app, name="runs")
+    app.command("export")(export_command)
+
+
+# ---- parameters ------------------------------------------------------------------------------------
+def parse_params(items: list[str]) -> dict[str, Any]:
+    """``key=value`` items -> nested dict (``a.b=1`` -> {"a": {"b": 1}}); JSON values when they parse."""
+    data: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise typer.BadParameter(f"--param {item!r}: expected key=value")
+        try:
+            value = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        node = data
+        parts = key.split(".")
+        for part in parts[:-1]:
+            child = node.setdefault(part, {})
+            if not isinstance(child, dict):
+                raise typer.BadParameter(f"--param {key}: {part!r} is given a value and sub-keys")
+            node = child
+        node[parts[-1]] = value
+    return data
+
+
+def validate_params(module, data: dict[str, Any]):
+    """The procedure's ``Params`` from ``data``; a refusal names the key, the value and the reason."""
+    from pydantic import ValidationError
+
+    try:
+        return module.Params.model_validate(data)
+    except ValidationError as exc:
+        problems = []
+        for err in exc.errors():
+            key = ".".join(str(p) for p in err["loc"]) or "(parameters)"
+            given = err.get("input")
+            shown = "" if err["type"] == "missing" else f" (got {given!r})"
+            problems.append(f"--param {key}: {err['msg']}{shown}")
+        fields = ", ".join(module.Params.model_fields)
+        fail(f"procedure {module.NAME}: " + "; ".join(problems) + f". Parameters: {fields}")
+
+
+# ---- shared execution ----------------------------------------------------------------------------
+def _open_db(url: str | None):
+    from bench.storage.db import open_database
+
+    return open_database(url)
+
+
+def _bench_config_from_file(config_path: str | None):
+    from bench.config import BenchConfig
+
+    path = config_path or os.environ.get(CONFIG_ENV)
+    if not path:
+        fail(f"no bench config: give --config PATH, set ${CONFIG_ENV}, or use --sim for the simulated bench")
+    return BenchConfig.load(path)
+
+
+class _Signals:
+    """SIGINT: stop after the current recording (twice: abort); SIGTERM: abort."""
+
+    def __init__(self, control) -> None:
+        self.control = control
+        self.interrupts = 0
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> "_Signals":
+        if threading.current_thread() is threading.main_thread():
+            self.previous = {sig: signal.signal(sig, self._handle) for sig in (signal.SIGINT, signal.SIGTERM)}
+        return self
+
+    def _handle(self, signum, _frame) -> None:
+        if signum == signal.SIGINT:
+            self.interrupts += 1
+            self.control.request("stop" if self.interrupts == 1 else "abort")
+        else:
+            self.control.request("abort")
+
+    def __exit__(self, *exc) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+
+
+def _progress_loop(engine, stop: threading.Event, label: str) -> None:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    columns = [TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+               TextColumn("{task.fields[step]}"), TextColumn("{task.fields[left]}"), TimeElapsedColumn()]
+    with Progress(*columns, console=console, transient=False) as bar:
+        task = bar.add_task(label, total=100.0, step="", left="")
+        while True:
+            finished = stop.wait(0.25)
+            try:
+                p = engine.progress()
+            except Exception:  # noqa: BLE001 - the bar must never break the run
+                p = None
+            if p:
+                left = p.get("remaining_bench_s") or 0.0
+                bar.update(task, completed=p["percent"],
+                           step=f"step {min(p['step_index'] + 1, p['n_steps'])}/{p['n_steps']} "
+                                f"{p.get('step_kind') or ''} [{p['status']}]",
+                           left=f"{left / 3600:.2f} h bench left")
+            if finished:
+                break
+
+
+def _heartbeat_loop(store, run_id: int, owner: str, engine, stop: threading.Event) -> None:
+    while not stop.wait(HEARTBEAT_S):
+        try:
+            store.heartbeat(run_id, owner, engine.progress() if engine.plan is not None else None)
+        except Exception:  # noqa: BLE001 - a missed heartbeat is retried next time
+            pass
+
+
+def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_progress: bool, label: str) -> str:
+    """Run (``plan`` given) or resume ``run_id`` on the real drivers; returns the engine's final status."""
+    from bench.engine import Engine, QueueControl
+    from bench.engine.factory import build_devices, close_devices, make_fit_hook
+    from bench.engine.sqlstore import SqlRunStore, process_name
+
+    store = SqlRunStore(db, geometry=config.turntable.geometry, frame_kind=config.gyro.frame,
+                        nominal_rate_hz=config.gyro.data_rate_hz)
+    owner = process_name()
+    devices = build_devices(config, clock)
+    control = QueueControl()
+    engine = Engine(devices, store, clock, config, control, engine_config,
+                    make_fit_hook(db, store, latitude_deg=config.latitude_deg))
+    stop = threading.Event()
+    store.heartbeat(run_id, owner)
+    threads = [threading.Thread(target=_heartbeat_loop, args=(store, run_id, owner, engine, stop), daemon=True,
+                                name=f"heartbeat-run{run_id}")]
+    if show_progress:
+        threads.append(threading.Thread(target=_progress_loop, args=(engine, stop, label), daemon=True,
+                                        name="progress"))
+    for t in threads:
+        t.start()
+    try:
+        with _Signals(control):
+            if plan is not None:
+                status = engine.run(str(run_id), plan)
+            else:
+                status = engine.resume(str(run_id))
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(5)
+        try:
+            store.close(run_id)
+        finally:
+            for problem in close_devices(devices):
+                typer.secho(f"warning: closing {problem}", err=True, fg=typer.colors.YELLOW)
+    return status
+
+
+def _finish(db, run_id: int, status: str, as_json: bool) -> None:
+    from bench.engine.sqlstore import run_report
+
+    report = run_report(db, run_id)
+    doc = {"run_id": run_id, "status": report["status"], "outcome": status, "error": report["error"],
+           "step": report["step"], "n_steps": report["n_steps"], "progress": report["progress"],
+           "frames": report["frames"], "segments": report["segments"], "gaps": report["gaps"],
+           "suspensions": report["suspensions"], "fits": report["fits"]}
+    typer.secho(f"run {run_id} {status}: {report['frames']} frames, {len(report['gaps'])} gaps, "
+                f"{len(report['suspensions'])} suspensions" + (f"; {report['error']}" if report["error"] else ""),
+                err=True, fg=typer.colors.GREEN if status in ("completed", "stopped") else typer.colors.RED)
+    if as_json:
+        sys.stdout.write(json.dumps(doc, allow_nan=False) + "\n")
+        sys.stdout.flush()
+    if status not in ("completed", "stopped"):
+        raise typer.Exit(1)
+
+
+def _attach_sim(path: str):
+    """Bench config and clock of a running ``bench sim up --endpoints-json PATH``."""
+    from bench.clock import clock_from_json
+    from bench.config import BenchConfig
+    from bench.errors import DataFormatError
+
+    try:
+        doc = json.loads(Path(path).read_text())
+        return BenchConfig.model_validate(doc["bench_config"]), clock_from_json(doc["clock"])
+    except FileNotFoundError:
+        fail(f"--sim-endpoints {path}: no such file (start `bench sim up --endpoints-json {path}` first)")
+    except (json.JSONDecodeError, KeyError, ValueError) as exc:
+        raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
+
+
+def _sim_launch(sim, speed: float, scenario: str, chamber_transport: str) -> dict[str, Any]:
+    return {"speed": speed, "scenario": scenario, "data_rate_hz": sim.data_rate_hz,
+            "clock": sim.clock.to_json(), "chamber_transport": chamber_transport}
+
+
+# ---- bench run -------------------------------------------------------------------------------------
+@guarded
+def run_command(
+    procedure: str = typer.Argument(..., help="eight_position, thermal_ramp, rate_cycle, hrg_calibration, fog_startup"),
+    gyro: str = typer.Option(..., "--gyro", help="ID of the gyro under test"),
+    sim: bool = typer.Option(False, "--sim", help="start a simulated bench in this process"),
+    speed: float = typer.Option(3600.0, "--speed", help="simulated bench: bench seconds per wall second"),
+    scenario: str = typer.Option("default", "--scenario", help="simulated bench: scenario name or JSON file"),
+    data_rate: Optional[int] = typer.Option(None, "--data-rate", help="simulated gyro data rate, Hz (bench time)"),
+    chamber_transport: str = typer.Option("modbus_tcp", "--chamber-transport",
+                                          help="simulated bench: modbus_tcp or modbus_rtu (RTU over TCP)"),
+    param: list[str] = typer.Option([], "--param", help="procedure parameter key=value (repeatable)"),
+    sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to a simulated bench "
+                                                "running in another process (`bench sim up --endpoints-json FILE`)"),
+    config_path: Optional[str] = typer.Option(None, "--config", help=f"bench config JSON (default ${CONFIG_ENV})"),
+    db_url: Optional[str] = typer.Option(None, "--db", help="database URL (default $BENCH_DATABASE_URL or "
+                                                            "sqlite:///var/bench.sqlite)"),
+    operator: str = typer.Option("", "--operator", help="who starts the run"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+) -> None:
+    """Run a procedure on the bench (or the simulated bench) and store everything."""
+    import procedures
+    from bench.clock import RealClock, make_clock
+    from bench.engine import plan_summary
+    from bench.engine.factory import engine_config_for
+    from bench.engine.sqlstore import new_run
+
+    try:
+        module = procedures.get(procedure)
+    except KeyError as exc:
+        fail(str(exc).strip("'\""))
+    params = validate_params(module, parse_params(param))
+    plan = module.build(params)
+    if chamber_transport not in ("modbus_tcp", "modbus_rtu"):
+        fail(f"--chamber-transport {chamber_transport!r}: use modbus_tcp or modbus_rtu")
+    bench = None
+    if sim:
+        if speed <= 0:
+            fail(f"--speed must be > 0, got {speed:g}")
+        from bench.config import BenchConfig
+        from bench.sim.bench import SimulatedBench
+
+        # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
+        # starting it (checked again below against the started bench's own config)
+        plan_summary(plan, BenchConfig(), engine_config_for(make_clock(speed)))
+        bench = SimulatedBench(speed=speed, scenario=scenario, data_rate_hz=data_rate).start()
+        config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
+    elif sim_endpoints:
+        config, clock = _attach_sim(sim_endpoints)
+    else:
+        config, clock = _bench_config_from_file(config_path), RealClock()
+    try:
+        engine_config = engine_config_for(clock)
+        summary = plan_summary(plan, config, engine_config)     # PlanError here: nothing created, nothing moved
+        db = _open_db(db_url)
+        launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
+                  "sim": _sim_launch(bench, speed, scenario, chamber_transport) if bench else None,
+                  "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None}
+        run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
+                         config_snapshot=config.model_dump(mode="json"), gyro_id=gyro, bench_name=config.name,
+                         operator=operator, launch=launch)
+        sys.stdout.write(f"run {run_id}\n")
+        sys.stdout.flush()
+        typer.echo(f"{module.NAME} on gyro {gyro}: {summary['n_steps']} steps, about "
+                   f"{summary['total_bench_h']:.2f} h of bench time"
+                   + (f" (simulated bench x{speed:g}, about {summary['total_bench_s'] / speed:.0f} s wall plus overhead)"
+                      if bench else ""), err=True)
+        status = _execute(db, run_id, config, clock, engine_config, plan=plan, show_progress=not no_progress,
+                          label=f"run {run_id} {module.NAME}")
+        _finish(db, run_id, status, as_json)
+    finally:
+        if bench is not None:
+            bench.stop()
+
+
+# ---- bench resume ------------------------------------------------------------------------------------
+def _last_chamber_pv(db, run_id: int) -> float | None:
+    from sqlalchemy import select
+
+    from bench.storage.models import Telemetry
+
+    with db.session() as s:
+        return s.scalar(select(Telemetry.chamber_pv).where(Telemetry.run_id == run_id, Telemetry.device == "chamber",
+                                                           Telemetry.chamber_pv.is_not(None))
+                        .order_by(Telemetry.t.desc()).limit(1))
+
+
+@guarded
+def resume_command(
+    run: int = typer.Argument(..., help="run ID"),
+    config_path: Optional[str] = typer.Option(None, "--config", help=f"bench config JSON (default ${CONFIG_ENV}); "
+                                                                     "not used for a simulated run"),
+    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to this running simulated "
+                                                "bench (default: the one the run was started on)"),
+    force: bool = typer.Option(False, "--force", help="resume even if the run's process looks alive"),
+    as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
+    no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
+) -> None:
+    """Continue an interrupted run from its last checkpoint."""
+    from bench.clock import RealClock, clock_from_json
+    from bench.engine import EngineConfig
+    from bench.engine.factory import engine_config_for
+    from bench.engine.sqlstore import claim_for_resume, process_name
+    from bench.storage import queries
+
+    db = _open_db(db_url)
+    with db.session() as s:
+        row = queries.get_run(s, run)
+        live, procedure = dict(row.live or {}), row.procedure
+    claim_for_resume(db, run, process_name(), force=force)
+    sim_info = live.get("sim")
+    bench = None
+    if sim_info:
+        from bench.sim.bench import SimulatedBench
+
+        clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
+        pv = _last_chamber_pv(db, run)
+        bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
+                               data_rate_hz=int(sim_info["data_rate_hz"]),
+                               initial_air_c=float(pv) if pv is not None else 23.0).start()
+        config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
+    elif sim_endpoints or live.get("sim_endpoints"):
+        config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"])
+    else:
+        config, clock = _bench_config_from_file(config_path), RealClock()
+    try:
+        stored = live.get("engine_config")
+        engine_config = EngineConfig.model_validate(stored) if stored else engine_config_for(clock)
+        sys.stdout.write(f"run {run}\n")
+        sys.stdout.flush()
+        typer.echo(f"resuming run {run} ({procedure})" + (f" on a restarted simulated bench x{sim_info['speed']:g}"
+                                                          if sim_info else ""), err=True)
+        status = _execute(db, run, config, clock, engine_config, show_progress=not no_progress,
+                          label=f"run {run} {procedure} (resumed)")
+        _finish(db, run, status, as_json)
+    finally:
+        if bench is not None:
+            bench.stop()
+
+
+# ---- bench runs list / show ---------------------------------------------------------------------
+@runs_app.command("list")
+@guarded
+def list_command(
+    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    status: Optional[str] = typer.Option(None, "--status", help="only runs with this status"),
+    limit: int = typer.Option(50, "--limit", help="at most this many (newest first)"),
+    as_json: bool = typer.Option(False, "--json", help="JSON list"),
+) -> None:
+    """Stored runs, newest first."""
+    from bench.storage import queries
+
+    db = _open_db(db_url)
+    with db.session() as s:
+        rows = [{"run_id": r.id, "procedure": r.procedure, "gyro_id": r.gyro_id, "status": r.status,
+                 "outcome": (r.live or {}).get("outcome"), "progress": float(r.progress or 0.0),
+                 "created_at": r.created_at.isoformat() if r.created_at else None,
+                 "finished_at": r.finished_at.isoformat() if r.finished_at else None}
+                for r in queries.list_runs(s, status=status, limit=limit)]
+    if as_json:
+        sys.stdout.write(json.dumps(rows) + "\n")
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table("run", "procedure", "gyro", "status", "progress", "created (UTC)")
+    for r in rows:
+        shown = r["status"] + (f" ({r['outcome']})" if r["outcome"] and r["outcome"] != r["status"] else "")
+        table.add_row(str(r["run_id"]), r["procedure"], r["gyro_id"] or "", shown, f"{100 * r['progress']:.1f}%",
+                      (r["created_at"] or "")[:19])
+    Console().print(table)
+
+
+@runs_app.command("show")
+@guarded
+def show_command(
+    run: int = typer.Argument(..., help="run ID"),
+    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    as_json: bool = typer.Option(False, "--json", help="one JSON object"),
+) -> None:
+    """Status, step, progress, frames, gaps and suspensions of a run."""
+    from bench.engine.sqlstore import run_report
+
+    report = run_report(_open_db(db_url), run)
+    if as_json:
+        sys.stdout.write(json.dumps(report, allow_nan=False) + "\n")
+        return
+    status = report["status"] + (f" ({report['outcome']})" if report["outcome"] not in (None, report["status"]) else "")
+    lines = [f"run {report['run_id']}: {report['procedure']} on gyro {report['gyro_id']}", f"status: {status}"]
+    if report["error"]:
+        lines.append(f"error: {report['error']}")
+    lines += [f"step: {report['step']} / {report['n_steps']} {report['step_name'] or ''}",
+              f"progress: {100 * report['progress']:.1f}%", f"frames: {report['frames']}",
+              f"segments: {report['segments']}", f"gaps: {len(report['gaps'])}"]
+    lines += [f"  {g['t_from']:.1f} .. {g['t_to']:.1f} ({g['duration_s']:.1f} s) {g['reason']}" for g in report["gaps"]]
+    lines.append(f"suspensions: {len(report['suspensions'])}")
+    lines += [f"  {x['t_from']:.1f} .. {x['t_to'] if x['t_to'] is None else round(x['t_to'], 1)} {x['reason']}"
+              for x in report["suspensions"]]
+    typer.echo("\n".join(lines))
+
+
+# ---- bench export --------------------------------------------------------------------------------
+@guarded
+def export_command(
+    run: int = typer.Argument(..., help="run ID"),
+    fmt: str = typer.Option("csv", "--format", help="csv (measured-data CSV v1) or parquet"),
+    output: Optional[str] = typer.Option(None, "-o", "--output", help="file (default stdout)"),
+    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    recorded_only: bool = typer.Option(False, "--recorded-only", help="csv: only seconds inside recorded segments"),
+    resolution: str = typer.Option("second", "--resolution", help="parquet: second (1-s means) or frame"),
+) -> None:
+    """Export a stored run: measured-data CSV v1 (1-s means) or Parquet (every export column)."""
+    db = _open_db(db_url)
+    if fmt == "csv":
+        from bench.fit.csvio import format_csv, write_csv
+        from bench.storage.export import run_dataset
+
+        ds = run_dataset(run, db, recorded_only=recorded_only)
+        if len(ds) == 0:
+            fail(f"run {run}: no frames stored{' inside recorded segments' if recorded_only else ''}; nothing to export")
+        if output:
+            write_csv(ds, output)
+        else:
+            sys.stdout.write(format_csv(ds))
+    elif fmt == "parquet":
+        import tempfile
+
+        from bench.storage.export import export_parquet
+
+        if resolution not in ("second", "frame"):
+            fail(f"--resolution {resolution!r}: use second or frame")
+        if output:
+            export_parquet(db, run, output, resolution=resolution)
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                path = export_parquet(db, run, Path(tmp) / f"run{run}.parquet", resolution=resolution)
+                sys.stdout.buffer.write(path.read_bytes())
+                sys.stdout.flush()
+    else:
+        fail(f"--format {fmt!r}: use csv or parquet")

@@ -1,0 +1,327 @@
+"""``bench serve``, ``bench worker``, ``bench coefficients`` and ``bench import``.
+
+* ``serve``: the HTTP API plus one worker per configured bench in one process.  Embedded default: the
+  SQLite file (``BENCH_DATABASE_URL`` overrides) and a simulated bench at ``--speed``; with
+  ``--config FILE`` (repeatable) the workers drive the benches those files describe.
+* ``worker``: one bench's worker on its own (the API may run elsewhere; killing either leaves the
+  other going, and a killed worker's run is resumed when a worker for that bench returns).
+* ``coefficients``: a gyro's accepted coefficients from the database.
+* ``import``: a measured-data CSV (v1) stored as a completed run, so it can be fitted like a recorded one.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import signal
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from bench.commands.common import fail, guarded
+
+
+def register(app: typer.Typer) -> None:
+    app.command("serve")(serve_command)
+    app.command("worker")(worker_command)
+    app.command("coefficients")(coefficients_command)
+    app.command("import")(import_command)
+
+
+# ------------------------------------------------------------------------------------ bench files
+def load_bench_file(path: str):
+    """A bench description: a ``BenchConfig`` JSON, or a simulated bench's endpoints file (``bench_config``
+    plus the ``clock`` both sides must share).  Returns (BenchConfig, clock description or None)."""
+    from bench.config import BenchConfig
+    from bench.errors import DataFormatError
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise DataFormatError("bench file not found", source=path) from None
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"not valid JSON: {exc.msg}", line=exc.lineno, source=path) from None
+    if isinstance(doc, dict) and "bench_config" in doc:
+        return BenchConfig.model_validate(doc["bench_config"]), doc.get("clock")
+    return BenchConfig.load(p), None
+
+
+def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
+    from bench.clock import clock_from_json, make_clock
+
+    if clock_doc:
+        return clock_from_json(clock_doc)
+    return make_clock(speed)
+
+
+def _tokens_or_generate() -> str:
+    import os
+
+    from api.auth import ENV_TOKENS
+
+    text = os.environ.get(ENV_TOKENS, "").strip()
+    if text:
+        return text
+    pairs = {role: secrets.token_urlsafe(18) for role in ("viewer", "operator", "admin")}
+    typer.secho(f"{ENV_TOKENS} is not set; tokens for this session:", fg=typer.colors.YELLOW, err=True)
+    for role, token in pairs.items():
+        typer.echo(f"  {role}: {token}", err=True)
+    return ",".join(f"{r}:{t}" for r, t in pairs.items())
+
+
+# ------------------------------------------------------------------------------------------ serve
+@guarded
+def serve_command(
+    host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
+    port: int = typer.Option(8000, "--port", min=0, max=65535, help="TCP port"),
+    speed: float = typer.Option(3600.0, "--speed", min=1.0, help="simulated bench: bench seconds per wall second"),
+    config: Optional[list[str]] = typer.Option(None, "--config", help="bench config JSON (repeatable); "
+                                               "default: one simulated bench"),
+    scenario: str = typer.Option("default", "--scenario", help="simulated bench scenario (name or JSON file)"),
+    bench_name: str = typer.Option("sim1", "--bench-name", help="name of the simulated bench"),
+    log_level: str = typer.Option("info", "--log-level"),
+) -> None:
+    """Run the API and one worker per configured bench in this process."""
+    import uvicorn
+
+    from api.app import create_app
+    from bench.storage import open_database
+    from bench.worker import Worker
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    db = open_database()
+    tokens = _tokens_or_generate()
+    sim = None
+    workers = []
+    try:
+        if config:
+            for path in config:
+                cfg, clock_doc = load_bench_file(path)
+                workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None)))
+        else:
+            from bench.sim.bench import SimulatedBench
+
+            sim = SimulatedBench(speed=speed, scenario=scenario, bench_name=bench_name).start()
+            cfg = sim.config
+            workers.append(Worker(db, cfg.name, cfg, None, sim.clock))
+            typer.echo(f"simulated bench {cfg.name!r} at {speed:g}x", err=True)
+        for w in workers:
+            w.start_thread()
+        typer.echo(f"database {db.dialect}; benches: {', '.join(w.bench_name for w in workers)}; "
+                   f"API on http://{host}:{port}/docs", err=True)
+        uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower())
+    finally:
+        for w in workers:
+            w.stop()
+        if sim is not None:
+            sim.stop()
+        db.dispose()
+
+
+# ----------------------------------------------------------------------------------------- worker
+@guarded
+def worker_command(
+    bench: str = typer.Option(..., "--bench", help="name of the bench this worker serves"),
+    config: Optional[str] = typer.Option(None, "--config", help="bench config JSON or a simulated bench's "
+                                         "endpoints file; default: the configuration stored for the bench"),
+    speed: Optional[float] = typer.Option(None, "--speed", min=1.0, help="accelerated clock (when the bench file "
+                                          "carries no clock)"),
+    heartbeat_s: float = typer.Option(1.0, "--heartbeat", min=0.05, help="heartbeat period, wall seconds"),
+    stale_after_s: float = typer.Option(15.0, "--stale-after", min=0.2, help="a heartbeat older than this means "
+                                        "the worker died (wall seconds)"),
+    poll_s: float = typer.Option(0.5, "--poll", min=0.01, help="queue polling period, wall seconds"),
+    log_level: str = typer.Option("info", "--log-level"),
+) -> None:
+    """Serve one bench: claim its queued runs, execute them, resume a run whose worker died."""
+    from bench.config import BenchConfig
+    from bench.storage import open_database
+    from bench.storage.models import Bench
+    from bench.worker import Worker
+    from sqlalchemy import select
+
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    db = open_database()
+    clock_doc = None
+    if config:
+        cfg, clock_doc = load_bench_file(config)
+        if cfg.name != bench:
+            cfg = cfg.model_copy(update={"name": bench})
+    else:
+        with db.session() as s:
+            row = s.scalars(select(Bench).where(Bench.name == bench)).first()
+            if row is None or not row.config:
+                fail(f"bench {bench!r} has no stored configuration; give --config FILE")
+            cfg = BenchConfig.model_validate(row.config)
+    worker = Worker(db, bench, cfg, None, _clock(clock_doc, speed), heartbeat_s=heartbeat_s,
+                    stale_after_s=stale_after_s, poll_s=poll_s)
+    signal.signal(signal.SIGTERM, lambda *_: worker.stop())
+    typer.echo(f"worker {worker.worker_id} serving bench {bench!r} ({db.dialect})", err=True)
+    worker.run_forever()
+
+
+# ----------------------------------------------------------------------------------- coefficients
+@guarded
+def coefficients_command(
+    gyro: str = typer.Argument(..., help="gyro ID"),
+    model: Optional[str] = typer.Option(None, "--model", help="only this model"),
+    version: Optional[int] = typer.Option(None, "--version", min=1, help="this version (needs --model)"),
+    as_json: bool = typer.Option(False, "--json", help="print the JSON document"),
+) -> None:
+    """Print a gyro's coefficients: the latest accepted fit of each model."""
+    from api.coefficients import NoCoefficients, load_coefficients
+    from bench.storage import open_database
+
+    db = open_database()
+    try:
+        doc = load_coefficients(db, gyro, model=model, version=version)
+    except NoCoefficients as exc:
+        fail(str(exc), code=1)
+    if as_json:
+        sys.stdout.write(json.dumps(doc, indent=2) + "\n")
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    for m in doc["models"]:
+        table = Table(title=f"{gyro}: {m['model']} v{m['version']}{' (accepted)' if m['accepted'] else ''}, "
+                            f"runs {m['run_ids']}")
+        table.add_column("channel")
+        table.add_column("term")
+        table.add_column("value", justify="right")
+        table.add_column("unit")
+        for ch, entry in m["channels"].items():
+            units = entry.get("units") or {}
+            for term, value in entry["coefficients"].items():
+                table.add_row(ch, term, f"{value:.9g}" if isinstance(value, (int, float)) else str(value),
+                              str(units.get(term, "")))
+        console.print(table)
+
+
+# ----------------------------------------------------------------------------------------- import
+def import_dataset(db, dataset, gyro_id: str, *, source: str = "", bench_name: str | None = None,
+                   operator: str = "", progress=None) -> int:
+    """Store a measured-data ``Dataset`` as a completed run of procedure ``import``; returns the run id.
+
+    Bench time of the run = the CSV's ``time_s``.  Each row becomes one gyro frame in the KVH Format A
+    layout (deg/h -> deg/s, float32 as on the wire; the bytes are an encoding of the imported
+    values, not bytes received from a device, which the run's ``config_snapshot.import`` says), each
+    ``temp_<name>`` a probe reading, ``chamber_pv``/``chamber_sp`` chamber telemetry, ``power``
+    PSU on/off, and each stretch of constant ``orientation`` a ``record`` segment labelled with it.
+    """
+    import numpy as np
+
+    from bench.devices.kvh import encode_format_a
+    from bench.errors import DataFormatError
+    from bench.interfaces import GyroFrame, ProbeReading
+    from bench.storage import FrameWriter, queries
+    from bench.storage.models import utcnow
+
+    cols = dataset.columns
+    n = len(dataset)
+    if n == 0:
+        raise DataFormatError("no data rows", source=source)
+    if any(k.startswith("freq_") for k in cols):
+        raise DataFormatError("freq_<ch> columns (HRG) cannot be imported as KVH frames yet", source=source)
+    channels = [c for c in ("x", "y", "z") if f"gyro_{c}" in cols]
+    extra = [c for c in dataset.gyro_channels() if c not in ("x", "y", "z")]
+    if extra:
+        raise DataFormatError(f"gyro channels {extra}: only x, y, z map onto a stored frame", source=source)
+    t = np.asarray(cols["time_s"], dtype=np.float64)
+    gyro = np.zeros((n, 3))
+    for i, c in enumerate("xyz"):
+        if c in channels:
+            gyro[:, i] = np.asarray(cols[f"gyro_{c}"], dtype=np.float64) / 3600.0
+    valid = np.all(np.isfinite(gyro), axis=1)
+    gyro = np.nan_to_num(gyro)
+    probes = dataset.temp_names()
+    first_temp = np.asarray(cols[f"temp_{probes[0]}"], dtype=np.float64) if probes else np.full(n, np.nan)
+    meta = dict(dataset.meta)
+    snapshot = {"name": bench_name or "import", "latitude_deg": float(meta.get("latitude_deg", 45.75)),
+                "gyro": {"frame": "kvh_a", "output_units": "deg/s", "channels": channels},
+                "import": {"source": source, "rows": n, "meta": meta,
+                           "note": "frames re-encoded from the CSV values (KVH Format A layout)"}}
+    with db.session() as s:
+        queries.ensure_gyro(s, gyro_id, type=meta.get("gyro_type"))
+        run = queries.create_run(s, procedure="import", parameters={"source": source, "rows": n},
+                                 config_snapshot=snapshot, operator=operator, gyro_id=gyro_id, bench_name=bench_name)
+        run.status, run.started_at = "running", utcnow()
+        run_id = run.id
+    rate = 1.0 / float(np.median(np.diff(t))) if n > 1 else None
+    writer = FrameWriter(db, run_id, frame_kind="kvh_a", nominal_rate_hz=rate, sequence_modulus=None)
+    try:
+        step = 5000
+        for start in range(0, n, step):
+            stop = min(n, start + step)
+            frames = []
+            for i in range(start, stop):
+                temp = float(first_temp[i])
+                raw = encode_format_a(tuple(gyro[i]), (0.0, 0.0, 0.0), sequence=i % 128,
+                                      temperature_c=temp if np.isfinite(temp) else 0.0,
+                                      status=0x77 if valid[i] else 0x00)
+                frames.append(GyroFrame(host_time=float(t[i]), sequence=i % 128, gyro=tuple(gyro[i]),
+                                        accel=(0.0, 0.0, 0.0), status=0x77 if valid[i] else 0x00,
+                                        temperature_c=temp if np.isfinite(temp) else float("nan"), raw=raw))
+                readings = [ProbeReading(p, "", float(v) if np.isfinite(v := cols[f"temp_{p}"][i]) else None,
+                                         None if np.isfinite(v) else "missing in CSV") for p in probes]
+                writer.add_probe_readings(float(t[i]), readings)
+                pv = cols["chamber_pv"][i] if "chamber_pv" in cols else np.nan
+                sp = cols["chamber_sp"][i] if "chamber_sp" in cols else np.nan
+                if np.isfinite(pv) or np.isfinite(sp):
+                    writer.add_telemetry(float(t[i]), "chamber", chamber_pv=float(pv) if np.isfinite(pv) else None,
+                                         chamber_sp=float(sp) if np.isfinite(sp) else None)
+                if "power" in cols and np.isfinite(cols["power"][i]):
+                    writer.add_telemetry(float(t[i]), "psu", psu_on=bool(cols["power"][i]))
+            writer.add_many(frames)
+            if progress is not None:
+                progress(stop - start)
+        orient = cols.get("orientation")
+        codes = np.asarray(orient, dtype=str) if orient is not None else np.full(n, "NUE")
+        period = 1.0 / rate if rate else 1.0
+        start = 0
+        for i in range(1, n + 1):
+            if i == n or codes[i] != codes[start]:
+                if codes[start]:
+                    t_end = float(t[i]) if i < n else float(t[-1]) + period
+                    writer.add_segment("record", float(t[start]), t_end, orientation=str(codes[start]),
+                                       labels={"source": "import", "position": str(codes[start])})
+                start = i
+        writer.close()
+    except BaseException:
+        writer.abandon()
+        with db.session() as s:
+            r = queries.get_run(s, run_id, for_update=True)
+            r.status, r.finished_at, r.error = "failed", utcnow(), "import interrupted"
+        raise
+    with db.session() as s:
+        r = queries.get_run(s, run_id, for_update=True)
+        r.status, r.finished_at, r.progress = "completed", utcnow(), 1.0
+        r.live = {"outcome": "completed", "import": True}
+        queries.add_event(s, run_id, "imported", f"{n} rows imported from {source or 'CSV'}")
+    return run_id
+
+
+@guarded
+def import_command(
+    file: str = typer.Argument(..., help="measured-data CSV (v1)"),
+    gyro: str = typer.Option(..., "--gyro", help="gyro ID the data belongs to"),
+    bench_name: Optional[str] = typer.Option(None, "--bench", help="bench the data was measured on"),
+    operator: str = typer.Option("", "--operator"),
+) -> None:
+    """Store a measured-data CSV as a completed run (then fit it with ``bench fit MODEL RUN_ID``)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from bench.fit.csvio import read_csv
+    from bench.storage import open_database
+
+    dataset = read_csv(Path(file))
+    db = open_database()
+    with Progress(TextColumn("[bold]import"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  transient=False) as bar:
+        task = bar.add_task("rows", total=len(dataset))
+        run_id = import_dataset(db, dataset, gyro, source=str(file), bench_name=bench_name, operator=operator,
+                                progress=lambda k: bar.advance(task, k))
+    typer.echo(f"run {run_id}: {len(dataset)} rows of {file} stored for gyro {gyro}")

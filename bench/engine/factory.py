@@ -1,0 +1,127 @@
+"""Wiring the engine to a bench: real drivers from a ``BenchConfig``, engine timing for an accelerated
+clock, and the fit hook that fits a procedure's declared models on the stored run.
+
+``build_devices(config, clock)`` opens nothing by itself (drivers connect on first use, the gyro link
+on ``Engine`` start); ``close_devices`` closes every driver and never raises.
+
+``engine_config_for(clock)``: engine ticks are bench seconds.  With real time the defaults hold
+(1 s fine tick, 10 s soak tick).  With an accelerated clock every tick costs the same wall time
+(one drain of the gyro link, device telemetry, database calls), so the periods that only pace the
+loop are scaled to wall time: a fine tick of ``wall_tick_s`` wall seconds (0.02 s: 50 loops/s),
+telemetry every 0.05 wall s, checkpoints every 0.5 wall s, and the "no frames" timeouts to at least
+three wall seconds (the simulated gyro writes its frames in bursts, and a scheduling hiccup
+of the host must not look like a dead gyro).  Periods with a
+physical meaning (settle time after a suspension, wait-until-stable windows, ramp grace) are left
+in bench seconds.
+
+``make_fit_hook(db, store, latitude_deg=)``: the engine's ``Fit`` step calls it.  It flushes the
+run's writer, builds the run's measured-data ``Dataset`` (``bench.storage.export.run_dataset``: 1-s
+means of the recorded segments), keeps the rows of the segments named by the step's
+``options["train"]`` label filter (e.g. ``{"set": "model"}``), fits every model of the step on every
+gyro channel through ``bench.fit.catalog.fit_model`` (per-model options from
+``options["model_options"][model]``), and stores the ``FitResult``s as the next version of each model
+for the run's gyro in the ``fits`` table (``queries.save_fits``, accepted).  A model that cannot be
+fitted on a channel is reported in the result's ``errors``; if nothing could be fitted the step
+fails (the run itself is kept).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from bench.clock import Clock, RealClock, SteppedClock
+from bench.config import BenchConfig
+from bench.engine.config import EngineConfig
+from bench.engine.devices import Devices
+from bench.engine.steps import Fit
+from bench.errors import BenchError
+
+WALL_TICK_S = 0.02
+
+
+def build_devices(config: BenchConfig, clock: Clock) -> Devices:
+    """The real drivers for ``config`` (the same ones talk to the simulators)."""
+    from bench.devices.chamber import WatlowF4Chamber
+    from bench.devices.ds18b20 import W1ProbeArray
+    from bench.devices.gyro import GyroSerialLink
+    from bench.devices.psu import ScpiPowerSupply
+    from bench.devices.turntable import AcutrolTurntable
+
+    return Devices(chamber=WatlowF4Chamber(config.chamber, clock),
+                   turntable=AcutrolTurntable(config.turntable, clock),
+                   gyro=GyroSerialLink(config.gyro, clock),
+                   probes=W1ProbeArray(config.probes),
+                   psu=ScpiPowerSupply(config.psu))
+
+
+def close_devices(devices: Devices) -> list[str]:
+    """Close every driver; returns the problems met (closing must reach every device)."""
+    problems: list[str] = []
+    for name, action in (("gyro link", devices.gyro.stop), ("chamber", devices.chamber.close),
+                         ("turntable", devices.turntable.close), ("power supply", devices.psu.close)):
+        try:
+            action()
+        except Exception as exc:  # noqa: BLE001 - report and go on
+            problems.append(f"{name}: {type(exc).__name__}: {exc}")
+    return problems
+
+
+def engine_config_for(clock: Clock, base: EngineConfig | None = None, *,
+                      wall_tick_s: float = WALL_TICK_S) -> EngineConfig:
+    """Engine timing for ``clock`` (see the module docstring)."""
+    cfg = base or EngineConfig()
+    speed = getattr(clock, "speed", 1.0)
+    if isinstance(clock, (RealClock, SteppedClock)) or not speed or speed <= 1.0 or speed == float("inf"):
+        return cfg
+    k = float(speed)
+    return cfg.model_copy(update={
+        "tick_s": max(cfg.tick_s, k * wall_tick_s),
+        "max_tick_s": max(cfg.max_tick_s, k * 5 * wall_tick_s),
+        "telemetry_period_s": max(cfg.telemetry_period_s, k * 0.05),
+        "probe_period_s": max(cfg.probe_period_s, k * wall_tick_s),
+        "frame_flush_s": max(cfg.frame_flush_s, k * 0.25),
+        "checkpoint_period_s": max(cfg.checkpoint_period_s, k * 0.5),
+        "frames_timeout_s": max(cfg.frames_timeout_s, k * 3.0),
+        "frames_grace_s": max(cfg.frames_grace_s, k * 3.0),
+        "ramp_grace_s": max(cfg.ramp_grace_s, k * 0.5),
+    })
+
+
+# ---- fitting --------------------------------------------------------------------------------------
+def make_fit_hook(db, store, *, latitude_deg: float | None, accept: bool = True):
+    """Engine ``FitHook`` storing the fitted models in the ``fits`` table (see the module docstring)."""
+
+    def hook(run_id: str, index: int, step: Fit, _store: Any) -> dict[str, Any]:
+        from bench.fit.catalog import fit_model
+        from bench.storage import queries
+        from bench.storage.export import run_dataset
+
+        store.flush(run_id)
+        rid = int(run_id)
+        with db.session() as s:
+            gyro_id = queries.get_run(s, rid).gyro_id
+        if gyro_id is None:
+            return {"status": "skipped", "reason": "run has no gyro id", "models": list(step.models)}
+        train = step.options.get("train") if isinstance(step.options.get("train"), dict) else None
+        ds = run_dataset(rid, db, latitude_deg=latitude_deg, where=train)
+        if len(ds) < 10:
+            raise BenchError(f"run {rid}: only {len(ds)} recorded seconds"
+                             f"{' in ' + repr(train) if train else ''}; too few to fit {', '.join(step.models)}")
+        model_options = step.options.get("model_options") or {}
+        results, errors = [], {}
+        for model in step.models:
+            for channel in ds.gyro_channels():
+                try:
+                    results.append(fit_model(model, ds, channel, **dict(model_options.get(model) or {})))
+                except (BenchError, ValueError, KeyError, ArithmeticError, TypeError) as exc:
+                    errors[f"{model}/{channel}"] = f"{type(exc).__name__}: {exc}"
+        if not results:
+            raise BenchError(f"run {rid}: no model could be fitted: {errors}")
+        with db.session() as s:
+            versions = queries.save_fits(s, gyro_id, [rid], results, accepted=accept)
+        return {"status": "done", "gyro_id": gyro_id, "versions": versions, "accepted": accept,
+                "rows": len(ds), "train": train,
+                "fitted": sorted(f"{r.model}/{r.channel}" for r in results),
+                "rms_dph": {f"{r.model}/{r.channel}": r.stats.get("rms_dph") for r in results},
+                "errors": errors}
+
+    return hook

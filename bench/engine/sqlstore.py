@@ -1,0 +1,409 @@
+"""``SqlRunStore``: the engine's ``RunStore`` over the runs database (``bench.storage``).
+
+Run ids: the engine's run id is the decimal text of ``runs.id``.  The run row exists before the
+engine starts (``new_run`` here, the API, or a worker creates it ``queued``); ``create_run`` attaches
+the plan: ``runs.live["plan"]`` / ``["summary"]`` / ``["started_t"]`` and one ``steps`` row per plan
+step (named by the step's description).  The same layout as ``bench.worker``'s adapter, so a run
+started by ``bench run`` can be resumed by a worker and the other way round.
+
+Status mapping: storage knows queued, running, paused, stopping, suspended, completed, aborted,
+failed.  The engine's final ``stopped`` (ended early on an operator stop, after finishing the
+current recording) is stored as ``completed`` with ``runs.live["outcome"] = "stopped"`` (and
+``live["engine_status"]`` always holds the engine's own word).  A repeated status (``running`` again
+on resume) is not a transition and is skipped; the engine is the authority on a run it executes,
+so any change is written except leaving a final status (``InvalidTransition``).
+
+Data path: frames, probe readings, telemetry, events, segments and gaps go through one batched
+``FrameWriter`` per run (crash-safe per-run frame indexes, buffering through database outages);
+steps, status, checkpoints and suspensions are written at once in their own transactions.
+Events carry the engine's level in ``data["level"]`` (storage events have no level column).
+
+Segments: engine kinds map to storage kinds (``wait_stable`` -> ``settle``); labels ``position`` ->
+``orientation``, ``temperature_c``, ``repetition``; the full engine labels (with ``piece`` /
+``complete``) stay in ``segments.labels``.  ``outer_deg`` / ``inner_deg`` come from the last turntable
+telemetry; when the labels name no position and the table was at rest, the orientation code is the
+one the table angles realise (``bench.devices.orientation.code_at`` with the bench's geometry), so a
+run recorded "as mounted" (``thermal_ramp`` default) still says where its axes pointed.
+
+Checkpoint progress: the engine's ``progress.percent`` is stored as ``runs.progress`` (0..1) and
+``runs.current_step``; ``live["progress"]`` keeps the engine's whole progress document.
+"""
+from __future__ import annotations
+
+import math
+import os
+import socket
+import threading
+from typing import Any, Sequence
+
+from sqlalchemy import select, update
+
+from bench.config import TurntableGeometry
+from bench.engine.store import PsuReading
+from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
+from bench.storage import FrameWriter, queries
+from bench.storage.db import Database
+from bench.storage.errors import InvalidTransition, StorageError, UnknownRun
+from bench.storage.models import FrameCursor, Run, Step, Suspension, utcnow
+
+ENGINE_FINAL = ("completed", "stopped", "aborted", "failed")
+STORED_FINAL = ("completed", "aborted", "failed")
+ACTIVE = ("running", "paused", "stopping", "suspended")
+SEGMENT_KIND = {"record": "record", "soak": "soak", "ramp": "ramp", "wait_stable": "settle",
+                "orient": "move", "table_rate": "record"}
+AT_REST_DPS = 0.1
+CODE_MATCH_DEG = 1.0
+
+
+def jsonable(value: Any) -> Any:
+    """Plain JSON: non-finite floats -> None (PostgreSQL JSONB refuses NaN), tuples -> lists."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if hasattr(value, "item") and callable(value.item):     # numpy scalars
+        return jsonable(value.item())
+    return value
+
+
+def run_key(run_id: str | int) -> int:
+    try:
+        return int(run_id)
+    except (TypeError, ValueError):
+        raise UnknownRun(f"run id {run_id!r} is not a runs.id (an integer)") from None
+
+
+def process_name() -> str:
+    """``cli@host:pid``: identifies the process executing a run (heartbeat owner)."""
+    return f"cli@{socket.gethostname()}:{os.getpid()}"
+
+
+def new_run(db: Database, *, procedure: str, parameters: dict[str, Any], config_snapshot: dict[str, Any],
+            gyro_id: str | None, bench_name: str | None, operator: str = "",
+            launch: dict[str, Any] | None = None) -> int:
+    """A ``queued`` run row (gyro and bench rows made if missing); ``launch`` (how it was started:
+    simulated bench settings, engine config) goes to ``runs.live``.  Returns ``runs.id``."""
+    with db.session() as s:
+        run = queries.create_run(s, procedure=procedure, parameters=jsonable(parameters),
+                                 config_snapshot=jsonable(config_snapshot), operator=operator, gyro_id=gyro_id,
+                                 bench_name=bench_name)
+        if launch:
+            run.live = jsonable(dict(launch))
+        s.flush()
+        return int(run.id)
+
+
+class SqlRunStore:
+    """``bench.engine.RunStore`` over ``bench.storage`` (see the module docstring).
+
+    ``geometry``: the bench's turntable geometry (orientation codes of segments from the table
+    angles; None = only labelled positions are stored).  ``frame_kind`` / ``nominal_rate_hz`` /
+    ``writer_options`` configure the ``FrameWriter``s.  ``close(run_id)`` flushes and stops a run's
+    writer (call it when the engine returns); ``abandon`` drops what is buffered (tests of crashes).
+    """
+
+    def __init__(self, db: Database, *, geometry: TurntableGeometry | None = None, frame_kind: str = "kvh_a",
+                 nominal_rate_hz: float | None = None, writer_options: dict[str, Any] | None = None) -> None:
+        self.db = db
+        self.geometry = geometry
+        self.frame_kind = frame_kind
+        self.nominal_rate_hz = nominal_rate_hz
+        self.writer_options = dict(writer_options or {})
+        self._writers: dict[int, FrameWriter] = {}
+        self._table: dict[int, dict[int, AxisState]] = {}
+        self._lock = threading.Lock()
+
+    # ---- writers ----------------------------------------------------------------------------
+    def writer(self, run_id: str | int) -> FrameWriter:
+        rid = run_key(run_id)
+        with self._lock:
+            w = self._writers.get(rid)
+            if w is None:
+                opts: dict[str, Any] = {"frame_kind": self.frame_kind, "nominal_rate_hz": self.nominal_rate_hz}
+                if self.frame_kind != "kvh_a":
+                    opts["valid_status"] = None
+                opts.update(self.writer_options)
+                w = self._writers[rid] = FrameWriter(self.db, rid, **opts)
+            return w
+
+    def flush(self, run_id: str | int, timeout: float = 60.0) -> None:
+        w = self._writers.get(run_key(run_id))
+        if w is not None:
+            w.flush(timeout)
+
+    def close(self, run_id: str | int, timeout: float = 60.0) -> None:
+        with self._lock:
+            w = self._writers.pop(run_key(run_id), None)
+        if w is not None:
+            w.close(timeout)
+
+    def abandon(self, run_id: str | int) -> int:
+        with self._lock:
+            w = self._writers.pop(run_key(run_id), None)
+        return w.abandon() if w is not None else 0
+
+    # ---- run --------------------------------------------------------------------------------
+    def create_run(self, run_id: str, plan: dict[str, Any], summary: dict[str, Any], t: float) -> None:
+        rid = run_key(run_id)
+        with self.db.session() as s:
+            run = queries.get_run(s, rid, for_update=True)
+            if run.checkpoint is not None:
+                raise StorageError(f"run {rid} has already started (status {run.status}); resume it instead")
+            if run.status not in ("queued", "running"):
+                raise InvalidTransition(f"run {rid} is {run.status!r}; only a queued run can start")
+            live = dict(run.live or {})
+            live.update(plan=plan, summary=summary, started_t=t)
+            run.live = jsonable(live)
+            if s.scalar(select(Step.id).where(Step.run_id == rid).limit(1)) is None:
+                described = {st["index"]: st.get("describe", "") for st in summary.get("steps", [])}
+                queries.add_steps(s, rid, [{"name": (described.get(i) or st.get("kind", "step"))[:128],
+                                            "kind": st.get("kind", "step"), "params": jsonable(st)}
+                                           for i, st in enumerate(plan.get("steps", []))])
+
+    def load_plan(self, run_id: str) -> dict[str, Any]:
+        with self.db.session() as s:
+            plan = (queries.get_run(s, run_key(run_id)).live or {}).get("plan")
+        if plan is None:
+            raise StorageError(f"run {run_id}: no plan stored (the run never started)")
+        return plan
+
+    def set_run_status(self, run_id: str, status: str, t: float, reason: str | None = None) -> None:
+        rid = run_key(run_id)
+        stored = "completed" if status == "stopped" else status
+        with self.db.session() as s:
+            run = queries.get_run(s, rid, for_update=True)
+            live = dict(run.live or {})
+            if stored == run.status and live.get("engine_status") == status:
+                return
+            if run.status in STORED_FINAL and stored != run.status:
+                raise InvalidTransition(f"run {rid} already ended ({run.status}); cannot become {status!r}")
+            now = utcnow()
+            run.status = stored
+            if stored == "running" and run.started_at is None:
+                run.started_at = now
+            if stored in STORED_FINAL:
+                run.finished_at = now
+                if status != "completed" and reason:
+                    run.error = reason
+                live["outcome"] = status
+            live.update(engine_status=status, status_t=t, status_reason=reason)
+            run.live = jsonable(live)
+
+    def heartbeat(self, run_id: str | int, owner: str, progress: dict[str, Any] | None = None) -> None:
+        """Mark ``owner`` as the live executor of the run (and refresh ``live["progress"]``)."""
+        rid = run_key(run_id)
+        with self.db.session() as s:
+            run = queries.get_run(s, rid, for_update=True)
+            run.worker = owner
+            run.heartbeat_at = utcnow()
+            if progress is not None:
+                run.live = jsonable({**(run.live or {}), "progress": progress})
+
+    def save_checkpoint(self, run_id: str, checkpoint: dict[str, Any]) -> None:
+        rid = run_key(run_id)
+        progress = checkpoint.get("progress") or {}
+        percent = progress.get("percent")
+        with self.db.session() as s:
+            queries.save_checkpoint(s, rid, jsonable(checkpoint), current_step=int(checkpoint.get("step_index", 0)),
+                                    progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)))
+
+    def load_checkpoint(self, run_id: str) -> dict[str, Any] | None:
+        with self.db.session() as s:
+            return queries.get_run(s, run_key(run_id)).checkpoint
+
+    def set_step_status(self, run_id: str, index: int, kind: str, status: str, t: float,
+                        info: dict[str, Any] | None = None) -> None:
+        rid = run_key(run_id)
+        with self.db.session() as s:
+            step = s.scalars(select(Step).where(Step.run_id == rid, Step.index == index)).first()
+            if step is None:
+                raise StorageError(f"run {rid} has no step {index} ({kind})")
+            step.status = status
+            if status == "running":
+                step.started_t = t
+                step.finished_t = None
+            else:
+                step.finished_t = t
+            if info:
+                step.params = jsonable({**(step.params or {}), "info": info})
+
+    def add_event(self, run_id: str, t: float, level: str, kind: str, message: str,
+                  data: dict[str, Any] | None = None) -> None:
+        self.writer(run_id).add_event(kind[:32], message, t_bench=t, data=jsonable({"level": level, **(data or {})}))
+
+    # ---- data -------------------------------------------------------------------------------
+    def add_frames(self, run_id: str, frames: Sequence[GyroFrame]) -> None:
+        self.writer(run_id).add_many(frames)
+
+    def last_frame_time(self, run_id: str) -> float | None:
+        rid = run_key(run_id)
+        self.flush(rid)
+        with self.db.session() as s:
+            return s.scalar(select(FrameCursor.t_last).where(FrameCursor.run_id == rid))
+
+    def add_probe_readings(self, run_id: str, t: float, readings: Sequence[ProbeReading]) -> None:
+        self.writer(run_id).add_probe_readings(t, readings)
+
+    def add_telemetry(self, run_id: str, t: float, chamber: ChamberStatus | None,
+                      turntable: dict[int, AxisState] | None, psu: PsuReading | None) -> None:
+        w = self.writer(run_id)
+        if chamber is not None:
+            w.add_chamber(t, chamber)
+        if turntable:
+            w.add_turntable(t, turntable)
+            self._table[run_key(run_id)] = dict(turntable)
+        if psu is not None:
+            w.add_psu(t, psu.volts, psu.amps, psu.on)
+
+    def _table_orientation(self, rid: int) -> tuple[str | None, float | None, float | None]:
+        """(code or None, outer_deg, inner_deg) of the last turntable telemetry."""
+        axes = self._table.get(rid)
+        if not axes or self.geometry is None:
+            return None, None, None
+        a = axes.get(self.geometry.outer_axis_number)
+        b = axes.get(self.geometry.inner_axis_number)
+        if a is None or b is None:
+            return None, None, None
+        code = None
+        if abs(a.rate_dps) < AT_REST_DPS and abs(b.rate_dps) < AT_REST_DPS:
+            from bench.devices.orientation import code_at
+
+            nearest, off_deg = code_at(a.position_deg, b.position_deg, self.geometry)
+            code = nearest if off_deg <= CODE_MATCH_DEG else None
+        return code, a.position_deg, b.position_deg
+
+    def add_segment(self, run_id: str, step_index: int, kind: str, t_from: float, t_to: float,
+                    labels: dict[str, Any]) -> None:
+        rid = run_key(run_id)
+        temp = labels.get("temperature_c")
+        position = labels.get("position") if isinstance(labels.get("position"), str) else None
+        code, outer, inner = self._table_orientation(rid)
+        stored_labels = {**labels, "step_kind": kind}
+        if position is None and code is not None:
+            stored_labels["orientation_from"] = "table angles"
+        rep = labels.get("repetition", 0)
+        self.writer(rid).add_segment(
+            SEGMENT_KIND.get(kind, "record"), t_from, t_to, step_index=step_index,
+            temperature_c=float(temp) if isinstance(temp, (int, float)) and not isinstance(temp, bool) else None,
+            orientation=(position.upper() if position else code), outer_deg=outer, inner_deg=inner,
+            repetition=int(rep) if isinstance(rep, (int, float)) and not isinstance(rep, bool) else 0,
+            labels=jsonable(stored_labels))
+
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
+        self.writer(run_id).record_gap(t_from, max(t_from, t_to), reason[:64])
+
+    def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
+        with self.db.session() as s:
+            return int(queries.begin_suspension(s, run_key(run_id), t_from, reason).id)
+
+    def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None:
+        rid = run_key(run_id)
+        with self.db.session() as s:
+            sus = s.get(Suspension, int(suspension_id))
+            if sus is None or sus.run_id != rid:
+                raise StorageError(f"run {rid} has no suspension {suspension_id}")
+            sus.t_to = t_to
+            sus.reason = reason
+
+    def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None:
+        with self.db.session() as s:
+            run = queries.get_run(s, run_key(run_id), for_update=True)
+            live = dict(run.live or {})
+            fits = dict(live.get("fits") or {})
+            fits[str(step_index)] = result
+            live["fits"] = fits
+            run.live = jsonable(live)
+
+
+# ---- reading a run back (``bench runs show``) ------------------------------------------------------
+def run_report(db: Database, run_id: int) -> dict[str, Any]:
+    """Everything ``bench runs show`` prints: status, step, progress, frames, gaps, suspensions..."""
+    from bench.storage.models import Gap, Segment
+
+    with db.session() as s:
+        run = queries.get_run(s, int(run_id))
+        live = dict(run.live or {})
+        steps = list(s.scalars(select(Step).where(Step.run_id == run.id).order_by(Step.index)))
+        gaps = queries.list_gaps(s, run.id)
+        suspensions = list(s.scalars(select(Suspension).where(Suspension.run_id == run.id).order_by(Suspension.id)))
+        n_segments = len(list(s.scalars(select(Segment.id).where(Segment.run_id == run.id))))
+        frames = queries.frame_count(s, run.id)
+        n_steps = len(steps)
+        current = run.current_step
+        cp = run.checkpoint or {}
+        progress_doc = cp.get("progress") or live.get("progress") or {}
+        doc = {
+            "run_id": run.id,
+            "procedure": run.procedure,
+            "gyro_id": run.gyro_id,
+            "status": run.status,
+            "outcome": live.get("outcome"),
+            "engine_status": live.get("engine_status"),
+            "error": run.error,
+            "step": current,
+            "n_steps": n_steps,
+            "step_kind": steps[current].kind if current is not None and current < n_steps else None,
+            "step_name": steps[current].name if current is not None and current < n_steps else None,
+            "progress": float(run.progress or 0.0),
+            "percent": progress_doc.get("percent"),
+            "remaining_bench_s": progress_doc.get("remaining_bench_s"),
+            "frames": frames,
+            "segments": n_segments,
+            "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "duration_s": g.t_to - g.t_from, "reason": g.reason,
+                      "frames_missing": g.frames_missing, "after_index": g.after_index} for g in gaps],
+            "suspensions": [{"t_from": x.t_from, "t_to": x.t_to, "reason": x.reason,
+                             "duration_s": None if x.t_to is None else x.t_to - x.t_from} for x in suspensions],
+            "fits": live.get("fits") or {},
+            "parameters": run.parameters,
+            "created_at": run.created_at.isoformat() if run.created_at else None,
+            "started_at": run.started_at.isoformat() if run.started_at else None,
+            "finished_at": run.finished_at.isoformat() if run.finished_at else None,
+            "worker": run.worker,
+            "sim": live.get("sim"),
+            "steps_done": sum(1 for st in steps if st.status == "done"),
+        }
+    return jsonable(doc)
+
+
+def claim_for_resume(db: Database, run_id: int, owner: str, *, stale_after_s: float = 10.0,
+                     force: bool = False) -> None:
+    """Take a run over for ``bench resume``: refuse a final run, and a run whose executor still looks
+    alive (same host: its pid exists; other host: heartbeat fresher than ``stale_after_s``) unless
+    ``force``.  Sets ``runs.worker`` / ``heartbeat_at`` to ``owner``."""
+    import datetime as dt
+
+    with db.session() as s:
+        run = queries.get_run(s, int(run_id), for_update=True)
+        if run.status in STORED_FINAL:
+            raise InvalidTransition(f"run {run_id} already ended ({run.status}"
+                                    f"{', ' + run.live['outcome'] if run.live and run.live.get('outcome') else ''}); "
+                                    f"nothing to resume")
+        if run.checkpoint is None:
+            raise StorageError(f"run {run_id} has no checkpoint (status {run.status}); it never started, "
+                               f"nothing to resume")
+        if not force and run.worker and run.worker != owner:
+            if _executor_alive(run.worker, run.heartbeat_at, stale_after_s, dt):
+                raise StorageError(f"run {run_id} is still being executed by {run.worker} (heartbeat "
+                                   f"{run.heartbeat_at}); stop that process first or use --force")
+        s.execute(update(Run).where(Run.id == run.id).values(worker=owner, heartbeat_at=utcnow()))
+
+
+def _executor_alive(worker: str, heartbeat_at, stale_after_s: float, dt) -> bool:
+    host = socket.gethostname()
+    if worker.startswith("cli@") and ":" in worker:
+        w_host, _, pid = worker[4:].rpartition(":")
+        if w_host == host and pid.isdigit():
+            try:
+                os.kill(int(pid), 0)
+            except ProcessLookupError:
+                return False
+            except PermissionError:
+                return True
+            return True
+    if heartbeat_at is None:
+        return False
+    if heartbeat_at.tzinfo is None:
+        heartbeat_at = heartbeat_at.replace(tzinfo=dt.timezone.utc)
+    return (utcnow() - heartbeat_at).total_seconds() < stale_after_s

@@ -1,0 +1,218 @@
+"""Process-level resilience: the API and the bench worker run as separate processes.
+
+* Kill the API process (SIGKILL) mid-run: the run goes on; a new API process shows it.
+* Kill the worker (SIGKILL) mid-run: the run keeps its status with a stale heartbeat; when a worker for
+  that bench returns it takes the run over and resumes it from its checkpoint to the end.
+
+The worker process runs this module (``python -m tests.test_api_process worker ...``) on the device
+doubles, with the accelerated clock passed in so every worker process shares the bench time axis.
+tests/test_api_serve.py runs ``bench serve`` (API + worker + simulated bench in one process).
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
+PY = sys.executable
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Procs:
+    def __init__(self, db_url: str, tmp: Path) -> None:
+        self.env = {**os.environ, "BENCH_DATABASE_URL": db_url, "BENCH_TOKENS": TOKENS_TEXT,
+                    "BENCH_STALE_AFTER_S": "1.5",
+                    "PYTHONPATH": str(ROOT)}
+        self.tmp = tmp
+        self.procs: list[subprocess.Popen] = []
+
+    def spawn(self, args: list[str], log: str) -> subprocess.Popen:
+        out = open(self.tmp / log, "ab")
+        p = subprocess.Popen(args, cwd=self.tmp, env=self.env, stdout=out, stderr=subprocess.STDOUT)
+        self.procs.append(p)
+        return p
+
+    def api(self, port: int) -> subprocess.Popen:
+        p = self.spawn([PY, "-m", "uvicorn", "--factory", "api.app:app_from_env", "--host", "127.0.0.1",
+                        "--port", str(port), "--log-level", "warning"], "api.log")
+        wait_for(lambda: _health(port), 20, "API up", interval=0.1)
+        return p
+
+    def kill(self, p: subprocess.Popen) -> None:
+        p.send_signal(signal.SIGKILL)
+        p.wait(timeout=10)
+
+    def close(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+
+
+def _health(port: int) -> bool:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def _doubles_worker(p: Procs, bench: str, clock: dict) -> subprocess.Popen:
+    return p.spawn([PY, "-m", "tests.test_api_process", "worker", bench, json.dumps(clock)], "worker.log")
+
+
+def _get(port: int, rid: int) -> dict:
+    r = httpx.get(f"http://127.0.0.1:{port}/runs/{rid}", headers=VIEWER, timeout=5)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def _db_run(db_url: str, rid: int):
+    from bench.storage import open_database, queries
+    db = open_database(db_url)
+    try:
+        with db.session() as s:
+            run = queries.get_run(s, rid)
+            return run.status, run.progress, run.heartbeat_at, run.worker
+    finally:
+        db.dispose()
+
+
+@pytest.fixture()
+def pg_db_url(pg_url):
+    """A fresh PostgreSQL database for one test (the session's ``pg_url`` database is shared)."""
+    import uuid
+
+    import sqlalchemy as sa
+    name = f"proc_{uuid.uuid4().hex[:10]}"
+    admin = sa.create_engine(pg_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as conn:
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    yield pg_url.rsplit("/", 1)[0] + "/" + name
+    with admin.connect() as conn:
+        conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :n "
+                             "AND pid <> pg_backend_pid()"), {"n": name})
+        conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}"'))
+    admin.dispose()
+
+
+def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
+    """SQLite; the worker process drives the device doubles (the engine's own test doubles)."""
+    from bench.clock import AcceleratedClock
+    from bench.storage import open_database
+    from tests.api_support import register_bench
+
+    db_url = f"sqlite:///{tmp_path / 'proc.sqlite'}"
+    db = open_database(db_url)       # migrate once before the processes start
+    register_bench(db, "proc1")
+    db.dispose()
+    clock = AcceleratedClock(150.0).to_json()
+    p = Procs(db_url, tmp_path)
+    start = lambda: _doubles_worker(p, "proc1", clock)    # noqa: E731
+    try:
+        _kill_and_resume(p, db_url, start, SHORT_RAMP, check_fit=True)
+    finally:
+        p.close()
+
+
+@pytest.mark.postgres
+def test_kill_api_then_worker_mid_run_postgres_doubles(pg_db_url, tmp_path):
+    """The same on PostgreSQL (row locks: the claim and the takeover run under SELECT ... FOR UPDATE)."""
+    from bench.clock import AcceleratedClock
+    from bench.storage import open_database
+    from tests.api_support import register_bench
+
+    db = open_database(pg_db_url)
+    register_bench(db, "proc1")
+    db.dispose()
+    clock = AcceleratedClock(150.0).to_json()
+    p = Procs(pg_db_url, tmp_path)
+    try:
+        _kill_and_resume(p, pg_db_url, lambda: _doubles_worker(p, "proc1", clock), SHORT_RAMP, check_fit=True)
+    finally:
+        p.close()
+
+
+def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fit: bool) -> None:
+    if True:
+        port = free_port()
+        api = p.api(port)
+        worker = start_worker()
+        wait_for(lambda: httpx.get(f"http://127.0.0.1:{port}/benches/proc1", headers=VIEWER,
+                                   timeout=5).json().get("online"), 30, "worker online", interval=0.1)
+        body = {"procedure": "thermal_ramp", "gyro_id": "RLG-P", "bench": "proc1", "params": params}
+        r = httpx.post(f"http://127.0.0.1:{port}/runs", json=body, headers=OPERATOR, timeout=10)
+        assert r.status_code == 201, r.text
+        rid = r.json()["id"]
+        wait_for(lambda: _get(port, rid)["progress_percent"] > 3, 20, "run progressing")
+        # 1. the API dies: the run goes on
+        p.kill(api)
+        before = _db_run(db_url, rid)[1]
+        time.sleep(1.0)
+        status, after, *_ = _db_run(db_url, rid)
+        assert status == "running" and after > before
+        port = free_port()
+        p.api(port)
+        doc = _get(port, rid)
+        assert doc["status"] == "running" and doc["worker_alive"]
+        # 2. the worker dies (kill -9): the run is left running with a stale heartbeat
+        p.kill(worker)
+        stuck = wait_for(lambda: (d := _get(port, rid))["worker_alive"] is False and d, 10, "stale heartbeat")
+        assert stuck["progress_percent"] < 100
+        assert stuck["status"] in ("running", "paused", "suspended")
+        frozen = stuck["progress_percent"]
+        # a worker for the bench returns: it takes the run over and resumes it
+        start_worker()
+        done = wait_for(lambda: (d := _get(port, rid))["status"] in ("completed", "failed", "aborted") and d,
+                        40, "resumed run finished")
+        assert done["outcome"] == "completed", done
+        assert done["progress_percent"] == pytest.approx(100.0) and frozen < 100
+        assert any(g["reason"] == "engine interrupted" for g in done["gaps"])
+        kinds = [e["kind"] for e in httpx.get(f"http://127.0.0.1:{port}/runs/{rid}/events", headers=VIEWER,
+                                              timeout=10).json()["events"]]
+        assert "worker_takeover" in kinds and "run_resumed" in kinds
+        if check_fit:
+            assert done["fits"] and list(done["fits"].values())[-1]["status"] == "done", done["fits"]
+            coeffs = httpx.get(f"http://127.0.0.1:{port}/gyros/RLG-P/coefficients", headers=VIEWER,
+                               timeout=10).json()
+            assert coeffs["models"][0]["model"] == "dynamic" and coeffs["models"][0]["run_ids"] == [rid]
+
+
+def _doubles_worker_main(bench: str, clock_json: str) -> None:
+    """Entry of the worker process used above: a Worker on fresh device doubles."""
+    import logging
+
+    from bench.clock import clock_from_json
+    from bench.storage import open_database
+    from bench.worker import Worker
+    from tests.api_support import DoublesBench, bench_config, engine_config
+
+    logging.basicConfig(level=logging.INFO)
+    doubles = DoublesBench(clock=clock_from_json(json.loads(clock_json)))
+    w = Worker(open_database(), bench, bench_config(bench), doubles.factory, doubles.clock,
+               engine_config=engine_config(), heartbeat_s=0.2, stale_after_s=1.5, poll_s=0.05)
+    signal.signal(signal.SIGTERM, lambda *_: w.stop())
+    w.run_forever()
+
+
+if __name__ == "__main__" and len(sys.argv) == 4 and sys.argv[1] == "worker":
+    _doubles_worker_main(sys.argv[2], sys.argv[3])

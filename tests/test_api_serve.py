@@ -1,0 +1,63 @@
+"""``bench serve`` end to end: API + worker + simulated bench (real drivers over loopback) in one
+process on the embedded SQLite default.  Through HTTP: start a shortened thermal_ramp, watch its
+progress, stop it, start another, let it finish, fetch the coefficients by gyro ID."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+
+from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_for
+from tests.test_api_process import free_port
+
+BENCH = str(Path(sys.executable).with_name("bench"))
+
+
+def test_serve_simulated_bench_end_to_end(tmp_path):
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if k != "BENCH_DATABASE_URL"}   # the embedded default
+    env["BENCH_TOKENS"] = TOKENS_TEXT
+    log = open(tmp_path / "serve.log", "wb")
+    proc = subprocess.Popen([BENCH, "serve", "--port", str(port), "--speed", "200", "--log-level", "warning"],
+                            cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        def online():
+            try:
+                benches = httpx.get(f"{base}/benches", headers=VIEWER, timeout=2).json()["benches"]
+            except httpx.HTTPError:
+                return False
+            return benches and benches[0]["online"] and benches[0]
+        bench = wait_for(online, 30, "bench serve up with its simulated bench", interval=0.2)
+        assert bench["name"] == "sim1" and bench["devices"]["chamber"]["transport"] == "modbus_tcp"
+        assert (tmp_path / "var" / "bench.sqlite").exists()
+        params = dict(SHORT_RAMP, orientation=None)
+        body = {"procedure": "thermal_ramp", "gyro_id": "SIM-42", "bench": "sim1", "params": params}
+        first = httpx.post(f"{base}/runs", json=body, headers=OPERATOR, timeout=10).json()["id"]
+        get = lambda rid: httpx.get(f"{base}/runs/{rid}", headers=VIEWER, timeout=10).json()   # noqa: E731
+        seen = wait_for(lambda: (d := get(first))["progress_percent"] > 10 and d, 30, "progress")
+        assert seen["status"] == "running" and seen["eta_utc"] and seen["latest"].get("chamber")
+        assert httpx.post(f"{base}/runs/{first}/stop", headers=OPERATOR, timeout=10).status_code == 202
+        ended = wait_for(lambda: (d := get(first))["status"] in ("completed", "aborted", "failed") and d, 30,
+                         "first run stopped")
+        assert ended["outcome"] == "stopped", ended
+        second = httpx.post(f"{base}/runs", json=body, headers=OPERATOR, timeout=10).json()["id"]
+        done = wait_for(lambda: (d := get(second))["status"] in ("completed", "aborted", "failed") and d, 40,
+                        "second run finished")
+        assert done["outcome"] == "completed", done
+        assert list(done["fits"].values())[-1]["status"] == "done", done["fits"]
+        coeffs = httpx.get(f"{base}/gyros/SIM-42/coefficients", headers=VIEWER, timeout=10)
+        assert coeffs.status_code == 200, coeffs.text
+        dyn = coeffs.json()["models"][0]
+        assert dyn["model"] == "dynamic" and dyn["run_ids"] == [second] and set(dyn["channels"]) == {"x", "y", "z"}
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

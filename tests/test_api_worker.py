@@ -1,0 +1,122 @@
+"""End to end through HTTP with an in-process bench worker on the device doubles (accelerated clock),
+on SQLite and on PostgreSQL: start a shortened thermal_ramp, watch progress, pause / resume, stop it,
+start another, let it finish, fetch the coefficients by gyro ID; scheduling; one run per bench; SSE."""
+from __future__ import annotations
+
+import datetime as dt
+import json
+import time
+import uuid
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from bench.storage import open_database
+from tests.api_support import (OPERATOR, SHORT_RAMP, TOKENS, VIEWER, DoublesBench, register_bench, start_worker,
+                               unique_bench, wait_for)
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def db(request, tmp_path):
+    if request.param == "sqlite":
+        database = open_database(f"sqlite:///{tmp_path / 'w.sqlite'}")
+    else:
+        database = open_database(request.getfixturevalue("pg_url"), schema=f"t_{uuid.uuid4().hex[:8]}")
+    yield database
+    database.dispose()
+
+
+def run_doc(c, rid):
+    r = c.get(f"/runs/{rid}", headers=VIEWER)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+def test_ramp_progress_pause_stop_then_complete_and_coefficients(db):
+    name = unique_bench()
+    doubles = DoublesBench(speed=150.0)
+    worker, thread = start_worker(db, name, doubles)
+    c = TestClient(create_app(db, tokens=TOKENS, stale_after_s=1.5, sse_poll_s=0.05))
+    try:
+        wait_for(lambda: c.get(f"/benches/{name}", headers=VIEWER).json()["online"], 5, "worker online")
+        body = {"procedure": "thermal_ramp", "gyro_id": "RLG-7", "bench": name, "params": SHORT_RAMP}
+        first = c.post("/runs", json=body, headers=OPERATOR).json()["id"]
+        doc = wait_for(lambda: (d := run_doc(c, first))["progress_percent"] > 5 and d, 15, "progress")
+        assert doc["status"] == "running" and doc["worker_alive"] and doc["step"]["n_steps"] == 9
+        assert doc["eta_utc"] and doc["remaining_bench_s"] > 0
+        bench = c.get(f"/benches/{name}", headers=VIEWER).json()
+        assert bench["state"] == "busy" and bench["current_run"]["id"] == first
+        # pause: the step clock stops; resume
+        assert c.post(f"/runs/{first}/pause", headers=OPERATOR).status_code == 202
+        wait_for(lambda: run_doc(c, first)["status"] == "paused", 5, "paused")
+        p1 = run_doc(c, first)["progress_percent"]
+        time.sleep(0.6)
+        assert run_doc(c, first)["progress_percent"] == pytest.approx(p1, abs=0.5)
+        assert c.post(f"/runs/{first}/resume", headers=OPERATOR).status_code == 202
+        wait_for(lambda: run_doc(c, first)["status"] == "running", 5, "running again")
+        # latest readings are there while it runs
+        latest = wait_for(lambda: (d := run_doc(c, first)["latest"]).get("gyro") and d, 10, "gyro readings")
+        assert {"chamber", "probes", "psu"} <= set(latest)
+        assert latest["probes"]["celsius"]["t1"] == pytest.approx(30.0, abs=3.0)
+        # stop: ends after the current recording, safe state
+        assert c.post(f"/runs/{first}/stop", headers=OPERATOR).status_code == 202
+        done = wait_for(lambda: (d := run_doc(c, first))["status"] in ("completed", "aborted", "failed") and d,
+                        20, "stopped")
+        assert done["status"] == "completed" and done["outcome"] == "stopped", done
+        # the queued second run starts once the bench is free and runs to its end
+        second = c.post("/runs", json=body, headers=OPERATOR).json()["id"]
+        done = wait_for(lambda: (d := run_doc(c, second))["status"] in ("completed", "aborted", "failed") and d,
+                        30, "second run finished")
+        assert done["outcome"] == "completed", done
+        assert done["progress_percent"] == pytest.approx(100.0)
+        assert [s["status"] for s in done["steps"]] == ["done"] * 9
+        assert done["fits"]["8"]["status"] == "done"
+        coeffs = c.get("/gyros/RLG-7/coefficients", headers=VIEWER).json()
+        dyn = {m["model"]: m for m in coeffs["models"]}["dynamic"]
+        assert dyn["run_ids"] == [second] and dyn["accepted"]
+        assert set(dyn["channels"]) == {"x", "y", "z"} and "B0" in dyn["channels"]["x"]["coefficients"]
+        # the doubles' gyro outputs a constant 0.001 deg/s = 3.6 deg/h on x
+        assert dyn["channels"]["x"]["coefficients"]["B0"] == pytest.approx(3.6, abs=0.05)
+        data = c.get(f"/runs/{second}/data?stream=seconds&every=10", headers=VIEWER).json()
+        assert data["rows"] > 10 and "temp_t1" in data["columns"]
+        # live events (SSE) of a finished run replay and end
+        with c.stream("GET", f"/runs/{second}/events?follow=true", headers=VIEWER) as r:
+            assert r.headers["content-type"].startswith("text/event-stream")
+            text = "".join(r.iter_text())
+        kinds = [line[len("event: "):] for line in text.splitlines() if line.startswith("event: ")]
+        assert "run_started" in kinds and "run_ended" in kinds and kinds[-1] == "end"
+    finally:
+        worker.stop()
+        thread.join(timeout=30)
+    assert c.get(f"/benches/{name}", headers=VIEWER).json()["state"] == "offline"
+
+
+def test_schedule_and_one_run_per_bench(db):
+    name = unique_bench()
+    register_bench(db, name)
+    c = TestClient(create_app(db, tokens=TOKENS))
+    short = dict(SHORT_RAMP, soak_h=0.02, warmup_min=0.5, end_c=26.0, final_hold_min=0.5)
+    body = {"procedure": "thermal_ramp", "gyro_id": "RLG-8", "bench": name, "params": short}
+    soon = (dt.datetime.now(dt.timezone.utc) + dt.timedelta(seconds=2.5)).isoformat()
+    scheduled = c.post("/runs", json={**body, "start_at": soon}, headers=OPERATOR).json()["id"]
+    a = c.post("/runs", json=body, headers=OPERATOR).json()["id"]
+    b = c.post("/runs", json=body, headers=OPERATOR).json()["id"]
+    doubles = DoublesBench(speed=400.0)
+    w1, t1 = start_worker(db, name, doubles)
+    w2, t2 = start_worker(db, name, doubles)       # a second worker for the same bench must wait its turn
+    seen_active = []
+    try:
+        def finished():
+            runs = c.get(f"/runs?bench={name}", headers=VIEWER).json()["runs"]
+            seen_active.append(sum(r["status"] in ("running", "paused", "stopping", "suspended") for r in runs))
+            return all(r["status"] == "completed" for r in runs) and runs
+        runs = wait_for(finished, 40, "all three runs", interval=0.02)
+    finally:
+        w1.stop(); w2.stop()
+        t1.join(timeout=30); t2.join(timeout=30)
+    assert max(seen_active) == 1
+    started = {r["id"]: r["started_at"] for r in runs}
+    assert started[a] < started[b] < started[scheduled]         # the scheduled one waited for its time
+    assert started[scheduled] >= soon
+    assert len(w1.runs_done) + len(w2.runs_done) == 3

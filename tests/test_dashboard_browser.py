@@ -1,0 +1,262 @@
+"""The operator dashboard in headless Chromium (Debian ``chromium`` driven by PyPI ``playwright``, never
+``playwright install``) against the real service: ``bench serve`` (API + one worker on the simulated
+bench at high speed) in a subprocess on 127.0.0.1, on an SQLite file in a temp dir.
+
+The operator enters tokens (a wrong one, then a viewer's: both refused with a clear message), starts
+a thermal ramp from the procedure form (defaults from GET /procedures), watches its progress move and
+its plots fill, stops it; starts a short ramp that runs to its end (fitting the dynamic model), looks
+up the gyro's coefficients and opens the fit report.  Screenshots go to ``test-artifacts/dashboard/``.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ARTIFACTS = REPO / "test-artifacts" / "dashboard"
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                 "--disable-quic", "--disable-component-update", "--disable-sync"]
+TOKENS = {"viewer": "viewer-dash-token", "operator": "operator-dash-token", "admin": "admin-dash-token"}
+SPEED = 120.0                 # bench seconds per wall second
+GYRO = "RLG-DASH-1"
+# bench time: soak 72 s + warm-up 60 s + ramp 30 -> 27 C at 3 C/min 60 s + hold 60 s  ~ 4 s of wall time
+SHORT_RAMP = {"start_c": "30", "soak_h": "0.02", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
+              "final_hold_min": "1"}
+LONG_SOAK = {"start_c": "30", "soak_h": "2", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
+             "final_hold_min": "1"}
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _serve_main() -> None:
+    """Subprocess entry: ``bench serve`` with the dashboard router included if ``create_app`` does not
+    include it yet (the integrator adds it to api/app.py)."""
+    import api.app as app_module
+    from api import dashboard
+
+    real_create_app = app_module.create_app
+
+    def create_app_with_dashboard(*args, **kwargs):
+        app = real_create_app(*args, **kwargs)
+        if not any(str(getattr(r, "path", "")).startswith("/ui") for r in app.routes):
+            app.include_router(dashboard.router)
+        return app
+
+    app_module.create_app = create_app_with_dashboard
+    from bench.cli import app
+
+    app(sys.argv[1:], prog_name="bench")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get_json(url: str, token: str | None = None, timeout: float = 5.0):
+    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token else {})
+    with urllib.request.urlopen(req, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("dash")
+    port = _free_port()
+    env = dict(os.environ, BENCH_DATABASE_URL=f"sqlite:///{tmp / 'bench.sqlite'}",
+               BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items()), PYTHONUNBUFFERED="1")
+    log = open(tmp / "serve.log", "w")
+    code = "from tests.test_dashboard_browser import _serve_main; _serve_main()"
+    proc = subprocess.Popen([sys.executable, "-c", code, "serve", "--host", "127.0.0.1", "--port", str(port),
+                             "--speed", str(SPEED), "--log-level", "warning"],
+                            cwd=str(REPO), env=env, stdout=log, stderr=subprocess.STDOUT)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(f"bench serve exited with {proc.returncode}: {(tmp / 'serve.log').read_text()[-3000:]}")
+            try:
+                benches = _get_json(f"{base}/benches", TOKENS["viewer"], timeout=2)["benches"]
+                if benches and benches[0]["online"]:
+                    break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"bench serve not ready with an online bench after 30 s: "
+                            f"{(tmp / 'serve.log').read_text()[-3000:]}")
+            time.sleep(0.2)
+        yield base
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(5)
+        log.close()
+        shutil.copy(tmp / "serve.log", ARTIFACTS / "serve.log") if ARTIFACTS.exists() else None
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    if not Path(CHROMIUM).exists():
+        pytest.skip(f"{CHROMIUM} is missing: apt-get install -y chromium chromium-driver (scripts/install.sh)")
+    from playwright.sync_api import sync_playwright
+
+    profile = tmp_path_factory.mktemp("chromium-profile")
+    with sync_playwright() as pw:
+        context = pw.chromium.launch_persistent_context(str(profile), executable_path=CHROMIUM, args=CHROMIUM_ARGS,
+                                                        headless=True, viewport={"width": 1280, "height": 900})
+        try:
+            yield context
+        finally:
+            context.close()
+
+
+def shot(page, name: str) -> None:
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
+
+
+def use_token(page, token: str) -> None:
+    if page.locator("#token-form").is_hidden():
+        page.click("#token-change")
+    page.fill("#token-input", token)
+    page.click("#token-save")
+
+
+def fill_form(page, procedure: str, params: dict[str, str]) -> None:
+    page.select_option("#procedure", procedure)
+    page.fill("#gyro_id", GYRO)
+    for name, value in params.items():
+        page.fill(f"#param-{name}", value)
+
+
+def wait_status(page, statuses: tuple[str, ...], timeout_s: float) -> str:
+    page.wait_for_function("(wanted) => wanted.includes(document.getElementById('run-status').textContent)",
+                           arg=list(statuses), timeout=timeout_s * 1000)
+    return page.text_content("#run-status")
+
+
+def progress(page) -> float:
+    return float(page.text_content("#run-progress") or "0")
+
+
+def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
+    t_start = time.monotonic()
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda exc: errors.append(str(exc)))
+    page.on("dialog", lambda dialog: dialog.accept())
+
+    # --- no token: the token form opens; a wrong token is refused with a clear message
+    page.goto(f"{service}/ui/")
+    assert page.locator("#token-form").is_visible()
+    use_token(page, "not-a-real-token")
+    page.wait_for_selector("#alert.auth")
+    assert "401" in page.text_content("#alert") and "Unknown token" in page.text_content("#alert")
+
+    # --- a viewer sees the benches, but may not start a run (403, named role)
+    use_token(page, TOKENS["viewer"])
+    page.wait_for_selector("#benches tr[data-bench='sim1']")
+    assert "sim1" in page.text_content("#benches")
+    page.goto(f"{service}/ui/start")
+    page.wait_for_selector("#param-soak_h")
+    assert page.input_value("#procedure") in {"eight_position", "thermal_ramp", "rate_cycle", "hrg_calibration",
+                                             "fog_startup"}
+    fill_form(page, "thermal_ramp", SHORT_RAMP)
+    page.click("#start-run")
+    page.wait_for_selector("#alert.auth")
+    assert "403" in page.text_content("#alert") and "operator" in page.text_content("#alert")
+
+    # --- the form's defaults come from GET /procedures; a bad value is refused field by field
+    use_token(page, TOKENS["operator"])
+    page.reload()
+    page.wait_for_selector("#param-soak_h")
+    page.select_option("#procedure", "thermal_ramp")
+    assert float(page.input_value("#param-soak_h")) == 4.0            # thermal_ramp default: 4 h soak
+    assert float(page.input_value("#param-end_c")) == -30.0
+    fill_form(page, "thermal_ramp", dict(LONG_SOAK, soak_h="-1"))
+    page.click("#start-run")
+    page.wait_for_selector("label[data-field='soak_h'] .field-error:not(:empty)")
+    shot(page, "01-start-form-invalid")
+
+    # --- start a run with a long soak from the form; watch progress move; stop it
+    fill_form(page, "thermal_ramp", LONG_SOAK)
+    page.click("#start-run")
+    page.wait_for_url("**/ui/runs/*")
+    first = int(page.url.rstrip("/").rsplit("/", 1)[1])
+    wait_status(page, ("running",), 15)
+    page.wait_for_function("() => Number(document.getElementById('run-progress').textContent) > 0.5",
+                           timeout=15_000)
+    p1 = progress(page)
+    page.wait_for_function(f"() => Number(document.getElementById('run-progress').textContent) > {p1 + 0.5}",
+                           timeout=15_000)
+    page.wait_for_function("() => Number(document.getElementById('plot-chamber').dataset.points) > 5 && "
+                           "Number(document.getElementById('plot-probes').dataset.points) > 5",
+                           timeout=15_000)
+    assert page.locator("#events li").count() > 0
+    shot(page, "02-run-live")
+    page.click("#btn-stop")
+    status = wait_status(page, ("completed", "aborted", "failed"), 20)
+    assert status == "completed", page.text_content("#summary")
+    assert "stopped" in page.text_content("#summary")                   # outcome: stopped by the operator
+    assert page.locator("#btn-stop").is_disabled()
+    assert page.locator("#events li[data-kind='request_stop']").count() == 1
+    shot(page, "03-run-stopped")
+
+    # --- a short ramp that runs to its end: the worker fits and accepts the dynamic model
+    page.goto(f"{service}/ui/start")
+    page.wait_for_selector("#param-soak_h")
+    fill_form(page, "thermal_ramp", SHORT_RAMP)
+    page.click("#start-run")
+    page.wait_for_url("**/ui/runs/*")
+    second = int(page.url.rstrip("/").rsplit("/", 1)[1])
+    assert second != first
+    status = wait_status(page, ("completed", "aborted", "failed"), 40)
+    assert status == "completed" and "stopped" not in page.text_content("#summary"), page.text_content("#summary")
+    assert float(page.get_attribute("#summary .progress", "data-percent")) == pytest.approx(100.0)
+    page.wait_for_function("() => Number(document.getElementById('plot-gyro').dataset.points) > 20",
+                           timeout=10_000)
+    assert set(page.get_attribute("#plot-gyro", "data-series").split(",")) >= {"x", "y", "z"}
+    shot(page, "04-run-completed")
+
+    # --- the runs list shows both with status and progress
+    page.goto(f"{service}/ui/")
+    page.wait_for_selector(f"#runs tr[data-run='{second}']")
+    assert page.get_attribute(f"#runs tr[data-run='{first}']", "data-status") == "completed"
+    assert page.get_attribute(f"#runs tr[data-run='{second}'] .progress", "data-percent") == "100"
+    shot(page, "05-overview")
+
+    # --- look up the coefficients by gyro ID
+    page.goto(f"{service}/ui/gyros")
+    page.fill("#gyro-input", GYRO)
+    page.click("#gyro-lookup")
+    page.wait_for_selector("#coefficients [data-model='dynamic'] table.coefficients")
+    coeff = page.locator("#coefficients [data-model='dynamic'] tr[data-channel='x'][data-term='B0'] td.num")
+    assert coeff.count() == 1 and abs(float(coeff.text_content())) < 1e4
+    assert f"#{second}" in page.text_content("#coefficients [data-model='dynamic']")
+    shot(page, "06-gyro-coefficients")
+
+    # --- the fit report (HTML with before / after plots) in a sandboxed frame
+    page.click("#coefficients [data-model='dynamic'] a[href^='/ui/fits/']")
+    page.wait_for_selector("#report-frame", timeout=20_000)
+    frame = page.frame_locator("#report-frame")
+    frame.locator("img").first.wait_for(timeout=10_000)
+    assert frame.locator("img").count() >= 1
+    shot(page, "07-fit-report")
+
+    assert not errors, errors
+    assert time.monotonic() - t_start < 60, "the browser test must stay under 60 s"
