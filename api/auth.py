@@ -57,7 +57,7 @@ def tokens_from_env() -> dict[str, str]:
 _bearer = HTTPBearer(auto_error=False, description="A token from BENCH_TOKENS (role:token pairs)")
 
 
-def _principal(request: Request, creds: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> Principal:
+async def _principal(request: Request, creds: HTTPAuthorizationCredentials | None = Depends(_bearer)) -> Principal:
     tokens: dict[str, str] = request.app.state.tokens
     if creds is None or creds.scheme.lower() != "bearer" or not creds.credentials:
         raise Problem(401, "Authentication required",
@@ -78,7 +78,7 @@ def require(role: str):
     if role not in ROLES:
         raise ValueError(f"unknown role {role!r}")
 
-    def dependency(principal: Principal = Depends(_principal)) -> Principal:
+    async def dependency(principal: Principal = Depends(_principal)) -> Principal:
         if not principal.allows(role):
             raise Problem(403, "Not allowed", f"this needs the {role} role; your token has the {principal.role} role")
         return principal

@@ -9,7 +9,7 @@ from bench.storage.db import Database
 from bench.storage.models import Run
 
 
-def get_db(request: Request) -> Database:
+async def get_db(request: Request) -> Database:
     return request.app.state.db
 
 

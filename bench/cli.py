@@ -23,7 +23,7 @@ def _optional(module: str) -> None:
     mod.register(app)
 
 
-for _m in ("sim", "runs", "service"):
+for _m in ("sim", "runs", "service", "demo"):
     _optional(_m)
 
 if __name__ == "__main__":

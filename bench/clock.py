@@ -126,3 +126,22 @@ def make_clock(speed: float | None) -> Clock:
     if speed is None or speed == 1:
         return RealClock()
     return AcceleratedClock(float(speed))
+
+
+class Deadline:
+    """A deadline in bench seconds that stays meaningful on an accelerated clock.
+
+    At x3600 one poll round trip to a device (a few wall milliseconds) costs several bench seconds, so
+    a bench-time timeout alone could expire before the first reply.  On an accelerated clock the
+    deadline therefore also waits ``min_wall_s`` of wall time; on a real or stepped clock it is exact.
+    """
+
+    def __init__(self, clock: Clock, bench_s: float, min_wall_s: float = 2.0) -> None:
+        self.clock = clock
+        self.bench_deadline = clock.now() + bench_s
+        speed = getattr(clock, "speed", 1.0)
+        accelerated = speed > 1 and speed != float("inf")
+        self.wall_deadline = time.monotonic() + (min_wall_s if accelerated else 0.0)
+
+    def passed(self) -> bool:
+        return self.clock.now() >= self.bench_deadline and time.monotonic() >= self.wall_deadline

@@ -44,6 +44,7 @@ from bench.engine import Devices, Engine, EngineConfig
 from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
 from bench.engine.sqlstore import SqlRunStore
 from bench.errors import BenchError
+from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
 from bench.storage.errors import StorageError
@@ -323,7 +324,7 @@ class Worker:
             run = queries.get_run(s, run_id, for_update=True)
             if run.status in TERMINAL:
                 return
-            run.live = {**(run.live or {}), "progress": _plain(progress),
+            run.live = {**(run.live or {}), "progress": jsonable(progress),
                         "eta_utc": (now + dt.timedelta(seconds=wall_left)).isoformat(),
                         "bench_speed": finite_speed, "updated_utc": now.isoformat()}
             run.progress = min(1.0, max(0.0, float(progress.get("percent", 0.0)) / 100.0))
@@ -341,18 +342,6 @@ class Worker:
                           .values(worker=None, heartbeat_at=None, state={"state": "offline"}))
         except StorageError as exc:
             log.warning("worker %s: could not release the bench lease: %s", self.worker_id, exc)
-
-
-def _plain(value: Any) -> Any:
-    """JSON-safe: non-finite floats -> None (PostgreSQL JSONB refuses NaN)."""
-    import math
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def _update(entity):

@@ -7,6 +7,7 @@ cd "$(dirname "$0")/.."
 need_apt=()
 command -v mbpoll >/dev/null 2>&1 || need_apt+=(mbpoll)
 command -v socat  >/dev/null 2>&1 || need_apt+=(socat)
+command -v chromium >/dev/null 2>&1 || need_apt+=(chromium chromium-driver)   # dashboard browser tests
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = "0" ]; then SUDO=""; else SUDO="sudo"; fi
   $SUDO apt-get update -qq

@@ -29,10 +29,11 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run"
 TOKENS = {"viewer": "viewer-dash-token", "operator": "operator-dash-token", "admin": "admin-dash-token"}
 SPEED = 120.0                 # bench seconds per wall second
 GYRO = "RLG-DASH-1"
-# bench time: soak 72 s + warm-up 60 s + ramp 30 -> 27 C at 3 C/min 60 s + hold 60 s  ~ 4 s of wall time
-SHORT_RAMP = {"start_c": "30", "soak_h": "0.02", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
-              "final_hold_min": "1"}
-LONG_SOAK = {"start_c": "30", "soak_h": "2", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
+# bench time: soak 72 s + warm-up 180 s + ramp 30 -> 24 C at 2 C/min 180 s + hold 180 s, about 10 s of wall
+# time; the dynamic model's rate terms need recorded stretches several rate windows long
+SHORT_RAMP = {"orientation": "", "start_c": "30", "soak_h": "0.02", "warmup_min": "3", "rate_c_per_min": "2", "end_c": "24",
+              "final_hold_min": "3"}
+LONG_SOAK = {"orientation": "", "start_c": "30", "soak_h": "2", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
              "final_hold_min": "1"}
 
 pytestmark = pytest.mark.timeout(120)
@@ -155,8 +156,20 @@ def progress(page) -> float:
 
 
 def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
-    t_start = time.monotonic()
     page = browser.new_page()
+    try:
+        operator_session(service, page)
+    except BaseException:
+        shot(page, "failure")          # what the operator saw when it went wrong
+        raise
+
+
+def mark(label: str, t0: float) -> None:
+    print(f"[dashboard test] {time.monotonic() - t0:6.1f} s  {label}")
+
+
+def operator_session(service: str, page) -> None:
+    t_start = time.monotonic()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
     page.on("dialog", lambda dialog: dialog.accept())
@@ -181,6 +194,7 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     page.wait_for_selector("#alert.auth")
     assert "403" in page.text_content("#alert") and "operator" in page.text_content("#alert")
 
+    mark("token checks done", t_start)
     # --- the form's defaults come from GET /procedures; a bad value is refused field by field
     use_token(page, TOKENS["operator"])
     page.reload()
@@ -192,6 +206,11 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     page.click("#start-run")
     page.wait_for_selector("label[data-field='soak_h'] .field-error:not(:empty)")
     shot(page, "01-start-form-invalid")
+    # ... and what only the server can judge (the plan against the bench) comes back as a clear 422
+    fill_form(page, "thermal_ramp", dict(LONG_SOAK, orientation="QQQ"))
+    page.click("#start-run")
+    page.wait_for_selector("#alert.error")
+    assert "422" in page.text_content("#alert") and "QQQ" in page.text_content("#alert"), page.text_content("#alert")
 
     # --- start a run with a long soak from the form; watch progress move; stop it
     fill_form(page, "thermal_ramp", LONG_SOAK)
@@ -199,6 +218,7 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     page.wait_for_url("**/ui/runs/*")
     first = int(page.url.rstrip("/").rsplit("/", 1)[1])
     wait_status(page, ("running",), 15)
+    mark("run 1 started", t_start)
     page.wait_for_function("() => Number(document.getElementById('run-progress').textContent) > 0.5",
                            timeout=15_000)
     p1 = progress(page)
@@ -210,6 +230,7 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     assert page.locator("#events li").count() > 0
     shot(page, "02-run-live")
     page.click("#btn-stop")
+    mark("run 1 stopping", t_start)
     status = wait_status(page, ("completed", "aborted", "failed"), 20)
     assert status == "completed", page.text_content("#summary")
     assert "stopped" in page.text_content("#summary")                   # outcome: stopped by the operator
@@ -224,10 +245,12 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     page.click("#start-run")
     page.wait_for_url("**/ui/runs/*")
     second = int(page.url.rstrip("/").rsplit("/", 1)[1])
+    mark("run 2 started", t_start)
     assert second != first
     status = wait_status(page, ("completed", "aborted", "failed"), 40)
     assert status == "completed" and "stopped" not in page.text_content("#summary"), page.text_content("#summary")
     assert float(page.get_attribute("#summary .progress", "data-percent")) == pytest.approx(100.0)
+    mark("run 2 completed", t_start)
     page.wait_for_function("() => Number(document.getElementById('plot-gyro').dataset.points) > 20",
                            timeout=10_000)
     assert set(page.get_attribute("#plot-gyro", "data-series").split(",")) >= {"x", "y", "z"}
@@ -250,13 +273,25 @@ def test_operator_starts_watches_stops_and_reads_coefficients(service, browser):
     assert f"#{second}" in page.text_content("#coefficients [data-model='dynamic']")
     shot(page, "06-gyro-coefficients")
 
+    mark("coefficients shown", t_start)
     # --- the fit report (HTML with before / after plots) in a sandboxed frame
     page.click("#coefficients [data-model='dynamic'] a[href^='/ui/fits/']")
-    page.wait_for_selector("#report-frame", timeout=20_000)
+    page.wait_for_selector("#report-frame, #alert.error", timeout=30_000)
+    assert page.locator("#report-frame").count() == 1, f"no fit report: {page.text_content('#alert')}"
     frame = page.frame_locator("#report-frame")
     frame.locator("img").first.wait_for(timeout=10_000)
     assert frame.locator("img").count() >= 1
     shot(page, "07-fit-report")
+
+    mark("report shown", t_start)
+    # --- close the loop: the form posts to /close-loop; a run that does not exist is named in the answer
+    page.goto(f"{service}/ui/close-loop")
+    page.fill("#model", "dynamic")
+    page.fill("#train_run_id", str(second))
+    page.fill("#validation_run_id", "999")
+    page.click("#closeloop-form button[type=submit]")
+    page.wait_for_selector("#alert.error")
+    assert "422" in page.text_content("#alert") and "run 999 does not exist" in page.text_content("#alert")
 
     assert not errors, errors
     assert time.monotonic() - t_start < 60, "the browser test must stay under 60 s"

@@ -55,11 +55,13 @@ def test_eight_position_defaults_match_s000_3_2():
 
 def test_thermal_ramp_defaults_match_s000_3_3():
     plan = thermal_ramp.build()
-    validate_plan(plan, CFG_X)
+    assert not kinds(plan, Orient)                 # default: the gyro stays as mounted (S000 mounts it NUE)
+    validate_plan(plan, CFG8)
+    nue = thermal_ramp.build(thermal_ramp.Params(orientation="NUE"))
+    validate_plan(nue, CFG_X)
     with pytest.raises(PlanError, match="cannot reach NUE"):
-        validate_plan(plan, CFG8)
-    assert not kinds(thermal_ramp.build(thermal_ramp.Params(orientation=None)), Orient)
-    assert plan.steps[0] == Orient(code="NUE")
+        validate_plan(nue, CFG8)
+    assert nue.steps[0] == Orient(code="NUE")
     assert kinds(plan, SetChamber)[0].setpoint_c == 40.0
     (ramp,) = kinds(plan, Ramp)
     assert (ramp.target_c, ramp.rate_c_per_min, ramp.record["phase"]) == (-30.0, 1.0, "ramp")

@@ -111,8 +111,7 @@ def test_chamber_alarm_suspends_and_the_run_resumes_after_it_clears(url):
                    and r.engine.current.elapsed > 30.0, what="the warm-up recording")
         r.bench.chamber_model.inject_alarm(2)             # high deviation alarm, forced
         r.wait_for(lambda: r.engine.suspension is not None, what="the suspension")
-        with r.db.session() as s:
-            assert s.get(Run, r.run_id).status == "suspended"
+        r.wait_for(lambda: _stored_status(r) == "suspended", what="the stored status 'suspended'")
         time.sleep(0.3)                                   # stays suspended while the alarm is latched
         assert r.engine.suspension is not None
         r.bench.chamber_model.inject_alarm(0)             # condition gone ...
@@ -168,6 +167,11 @@ def test_run_without_config_or_sim_is_refused(url, monkeypatch):
     assert code == 2 and "no bench config" in err
     code, _, err = cli(["run", "nine_position", "--gyro", "B1", "--sim", "--db", url])
     assert code == 2 and "unknown procedure 'nine_position'" in err
+
+
+def _stored_status(r: SimRun) -> str:
+    with r.db.session() as s:
+        return s.get(Run, r.run_id).status
 
 
 def _no_runs(url: str) -> None:

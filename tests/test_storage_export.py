@@ -44,12 +44,14 @@ def test_per_second_columns(db, run_id):
     g = np.array([f.gyro for f in frames])
     assert np.allclose(cols["gyro_x"], g[:, 0].reshape(20, 200).mean(axis=1) * 3600.0, atol=1e-9)
     assert np.allclose(cols["time_s"], np.arange(20) + 0.4975 + 1e-4, atol=1e-4)   # mean frame time + jitter
-    # nearest previous probe reading: at second k (mean time k+0.5) the last reading is at 2*floor(k/2)+0.1
+    # probe readings (every 2 s at 2j+0.1, value rising 1 C/s) interpolated at each second's time;
+    # after the last reading (18.1 s) its value is held for up to max_age_s
     k = np.arange(20)
-    assert np.allclose(cols["temp_t1"], 20.0 + 2 * (k // 2))
-    t2_expected = 30.0 + 2 * (k // 2)
-    t2_expected[(k >= 6) & (k < 8)] = 34.0                       # faulty reading skipped: previous valid one
-    assert np.allclose(cols["temp_t2"], t2_expected)
+    t_sec = cols["bench_time_s"] - T0
+    expected_t1 = np.minimum(20.0 + (t_sec - 0.1), 38.0)
+    assert np.allclose(cols["temp_t1"], expected_t1, atol=1e-6)
+    # the faulty t2 reading at 6.1 s is skipped: 4.1 -> 8.1 s interpolated across it, same straight line
+    assert np.allclose(cols["temp_t2"], np.minimum(30.0 + (t_sec - 0.1), 48.0), atol=1e-6)
     assert np.allclose(cols["chamber_pv"], -10.0 + k) and np.all(cols["chamber_sp"] == -5.0)
     assert np.allclose(cols["power_w"], 28.0 * (0.5 + 0.01 * k))
     assert np.all(np.isnan(cols["axis1_pos"][k > 0.5 + 30]))   # older than max_age -> NaN
@@ -66,7 +68,7 @@ def test_per_frame_columns_and_rad_units(db, run_id):
     assert np.array_equal(idx, np.arange(idx[0], idx[0] + len(idx))) and len(idx) in (200, 201)
     g = np.array([frames[i].gyro for i in idx])
     assert np.allclose(cols["gyro_z"], g[:, 2] * 180.0 / math.pi * 3600.0)
-    assert np.allclose(cols["temp_t1"], np.where(cols["bench_time_s"] >= T0 + 4.1, 24.0, 22.0))
+    assert np.allclose(cols["temp_t1"], 20.0 + (cols["bench_time_s"] - T0 - 0.1), atol=1e-6)
 
 
 def test_parquet_export_round_trips(db, run_id, tmp_path):

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, JSONResponse
 from sqlalchemy import and_, func, select
 
 from api.auth import Principal, require
@@ -107,7 +107,7 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
 
 # ------------------------------------------------------------------------------ coefficients
 @router.get("/gyros/{gyro_id}/coefficients", summary="A gyro's coefficients: the latest accepted fit per model")
-def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
+async def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
                  _: Principal = Depends(require("viewer")),
                  model: str | None = Query(None, min_length=1, max_length=300),
                  version: int | None = Query(None, ge=1, le=1_000_000,
@@ -115,7 +115,9 @@ def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
     if not _valid_id(gyro_id):
         raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
     try:
-        return load_coefficients(db, gyro_id, model=model, version=version)
+        # one indexed query of about a millisecond: run on the event loop (no thread hop); the stored JSON
+        # documents are answered as they are, without re-encoding them field by field
+        return JSONResponse(load_coefficients(db, gyro_id, model=model, version=version))
     except ValueError as exc:
         raise Problem(422, "Invalid input", str(exc)) from None
     except NoCoefficients as exc:
@@ -241,19 +243,28 @@ def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
 
 
 # -------------------------------------------------------------------------------- close loop
+def _close_loop_analysis(db: Database, body: dict[str, Any]) -> tuple[dict[str, Any], Dataset, Dataset]:
+    """Run the close-the-loop analysis a request describes (deterministic: the report page reruns it
+    to draw the residuals, which are not stored)."""
+    from bench.fit.closeloop import close_loop
+
+    train, _ = load_runs_dataset(db, [body["train_run_id"]], body.get("latitude_deg"))
+    validate, _ = load_runs_dataset(db, [body["validation_run_id"]], body.get("latitude_deg"))
+    report = close_loop(train, validate, body["model"], channels=body.get("channels"),
+                        latitude_deg=body.get("latitude_deg"))
+    return report, train, validate
+
+
 def _close_loop_job(db: Database, analysis_id: int, body: dict[str, Any]) -> None:
-    from bench.commands.common import clean_floats
-    from bench.fit.closeloop import close_loop, public
+    from bench.fit.closeloop import public
+    from bench.jsonsafe import jsonable
 
     with db.session() as s:
         a = s.get(Analysis, analysis_id)
         a.status = "running"
     try:
-        train, _ = load_runs_dataset(db, [body["train_run_id"]], body.get("latitude_deg"))
-        validate, _ = load_runs_dataset(db, [body["validation_run_id"]], body.get("latitude_deg"))
-        report = close_loop(train, validate, body["model"], channels=body.get("channels"),
-                            latitude_deg=body.get("latitude_deg"))
-        result, status, error = clean_floats(public(report)), "done", None
+        report, _, _ = _close_loop_analysis(db, body)
+        result, status, error = jsonable(public(report)), "done", None
     except Problem as exc:
         result, status, error = None, "failed", exc.detail
     except Exception as exc:  # noqa: BLE001 - the failure is the analysis' result, reported to the caller
@@ -300,3 +311,26 @@ def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principa
         if a is None:
             raise Problem(404, "Not found", f"close-loop analysis {analysis_id} does not exist")
         return _analysis_doc(a)
+
+
+@router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
+            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation")
+def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    from bench.fit.closeloop_report import render_close_loop_report
+
+    with db.session() as s:
+        a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
+        if a is None:
+            raise Problem(404, "Not found", f"close-loop analysis {analysis_id} does not exist")
+        if a.status != "done":
+            raise Problem(409, "Not ready", f"close-loop analysis {analysis_id} is {a.status}; the report exists once "
+                                            "it is done")
+        body = dict(a.request)
+    try:
+        report, train, validate = _close_loop_analysis(db, body)
+        page = render_close_loop_report(report, train, validate,
+                                        title=f"Close-the-loop {analysis_id}: runs {body['train_run_id']} -> "
+                                              f"{body['validation_run_id']}")
+    except (BenchError, ValueError, KeyError) as exc:
+        raise Problem(422, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
+    return HTMLResponse(page)

@@ -10,6 +10,7 @@ import typer
 
 from bench.errors import BenchError
 from bench.fit.base import Dataset
+from bench.jsonsafe import jsonable as clean_floats  # noqa: F401  (strict JSON for CLI output)
 
 
 def fail(message: str, code: int = 2) -> NoReturn:
@@ -48,19 +49,6 @@ def _default(value: Any) -> Any:
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
-
-
-def clean_floats(doc: Any) -> Any:
-    """NaN/inf -> None so the JSON is strict."""
-    import math
-
-    if isinstance(doc, dict):
-        return {k: clean_floats(v) for k, v in doc.items()}
-    if isinstance(doc, (list, tuple)):
-        return [clean_floats(v) for v in doc]
-    if isinstance(doc, float) and not math.isfinite(doc):
-        return None
-    return doc
 
 
 def guarded(fn):

@@ -30,7 +30,7 @@ import re
 import struct
 import time
 
-from bench.clock import Clock, RealClock
+from bench.clock import Clock, Deadline, RealClock
 from bench.config import TurntableConfig
 from bench.devices.serial_line import SerialLine
 from bench.errors import BenchError, DeviceError, DeviceTimeout, ProtocolError
@@ -225,7 +225,7 @@ class AcutrolTurntable:
         return degrees / v + v / acc
 
     def _wait(self, axis: int, done, timeout_s: float, what: str) -> AxisState:
-        bench_deadline = self.clock.now() + timeout_s
+        deadline = Deadline(self.clock, timeout_s)
         speed = getattr(self.clock, "speed", 1.0)
         wall_budget = (timeout_s / speed if math.isfinite(speed) and speed > 0 else 0.0) + 10.0
         wall_deadline = time.monotonic() + wall_budget
@@ -233,7 +233,7 @@ class AcutrolTurntable:
             state = self.read(axis)
             if done(state):
                 return state
-            if self.clock.now() > bench_deadline or time.monotonic() > wall_deadline:
+            if deadline.passed() or time.monotonic() > wall_deadline:
                 raise DeviceTimeout(f"turntable at {self.config.url}: axis {axis} did not {what} within "
                                     f"{timeout_s:.1f} bench s (last position {state.position_deg}, "
                                     f"rate {state.rate_dps})")

@@ -330,13 +330,16 @@ class Engine:
                 return
             reason = "; ".join(conditions.values())
             sid = self.store.open_suspension(self.run_id, now, reason)
-            self.suspension = {"id": sid, "t_from": now, "reason": reason, "clear_since": None}
+            self.suspension = {"id": sid, "t_from": now, "reason": reason, "clear_since": None,
+                               "keys": set(conditions)}
             self.log("warning", "suspended", f"run suspended: {reason}")
             if not self.paused:
                 self._status("suspended", now, reason)
         elif conditions:
-            for text in conditions.values():
-                if text not in susp["reason"]:
+            keys = susp.setdefault("keys", set())
+            for key, text in conditions.items():
+                if key not in keys:          # a new kind of condition; a changing text is the same one
+                    keys.add(key)
                     susp["reason"] += "; " + text
                     self.log("warning", "suspension_reason", f"also: {text}")
             if susp["clear_since"] is not None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+from bench.clock import Deadline
 from bench.config import BenchConfig
 from bench.engine.devices import Devices
 from bench.errors import DeviceError
@@ -22,11 +23,11 @@ def angle_error(a: float, b: float) -> float:
 
 
 def wait_until(clock, timeout_s: float, done: Callable[[], bool]) -> bool:
-    deadline = clock.now() + timeout_s
+    deadline = Deadline(clock, timeout_s)
     while True:
         if done():
             return True
-        if clock.now() >= deadline:
+        if deadline.passed():
             return False
         clock.sleep(POLL_S)
 

@@ -30,7 +30,8 @@ Checkpoint progress: the engine's ``progress.percent`` is stored as ``runs.progr
 """
 from __future__ import annotations
 
-import math
+from bench.jsonsafe import jsonable  # noqa: F401  (re-exported: callers use sqlstore.jsonable)
+
 import os
 import socket
 import threading
@@ -53,19 +54,6 @@ SEGMENT_KIND = {"record": "record", "soak": "soak", "ramp": "ramp", "wait_stable
                 "orient": "move", "table_rate": "record"}
 AT_REST_DPS = 0.1
 CODE_MATCH_DEG = 1.0
-
-
-def jsonable(value: Any) -> Any:
-    """Plain JSON: non-finite floats -> None (PostgreSQL JSONB refuses NaN), tuples -> lists."""
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if hasattr(value, "item") and callable(value.item):     # numpy scalars
-        return jsonable(value.item())
-    return value
 
 
 def run_key(run_id: str | int) -> int:
@@ -320,7 +308,7 @@ class SqlRunStore:
 # ---- reading a run back (``bench runs show``) ------------------------------------------------------
 def run_report(db: Database, run_id: int) -> dict[str, Any]:
     """Everything ``bench runs show`` prints: status, step, progress, frames, gaps, suspensions..."""
-    from bench.storage.models import Gap, Segment
+    from bench.storage.models import Segment
 
     with db.session() as s:
         run = queries.get_run(s, int(run_id))

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from bench.jsonsafe import jsonable
+
 EARTH_RATE_DPH = 7.2921158553e-5 * 180.0 / 3.141592653589793 * 3600.0  # WGS-84 Omega_ie, deg/h
 
 
@@ -75,20 +77,4 @@ class FitResult:
     stats: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        return _jsonable(asdict(self))
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return _jsonable(value.tolist())
-    if isinstance(value, (np.floating,)):
-        return float(value)
-    if isinstance(value, (np.integer,)):
-        return int(value)
-    if isinstance(value, float) and not np.isfinite(value):
-        return None
-    return value
+        return jsonable(asdict(self))

@@ -22,6 +22,7 @@ Method (calibration-notes sections 4 and 7):
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,6 +30,7 @@ import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
+from bench.fit.metrics import bias_stability, window_means
 
 BLOCK_S = 100.0
 P_MAX = 1e-3
@@ -58,14 +60,14 @@ def block_means(x: np.ndarray, time_s: np.ndarray, block_s: float = BLOCK_S) -> 
     if n == 0:
         return x[:0]
     shaped = x[:n].reshape((n // per, per) + x.shape[1:])
-    return np.nanmean(shaped, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)      # an all-missing block is NaN, on purpose
+        return np.nanmean(shaped, axis=1)
 
 
 def std100(residual: np.ndarray, time_s: np.ndarray) -> float:
-    """Bias stability: std of 100-s means (GJB 2426A convention)."""
-    means = block_means(residual, time_s, 100.0)
-    means = means[np.isfinite(means)]
-    return float(np.std(means, ddof=1)) if len(means) > 1 else float("nan")
+    """Bias stability: std of 100-s means (GJB 2426A convention), the fitting module's definition."""
+    return bias_stability(time_s, residual, 100.0)
 
 
 def rms(x: np.ndarray) -> float:
@@ -135,9 +137,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     import statsmodels.api as sm
     from statsmodels.stats.diagnostic import acorr_ljungbox
 
-    means = block_means(residual, time_s, 100.0)
-    ok = np.isfinite(means)
-    means = means[ok]
+    means = window_means(time_s, residual, 100.0)
     n = len(means)
     out: dict[str, Any] = {"n_blocks": int(n)}
     if n < 12:
@@ -409,12 +409,14 @@ def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str
     window = d["rate_filter"]["window_s"]
     compiled = compiled_from_recipe(d["terms"], d.get("formula", ""), window)
     out = []
-    for ds in (train, validate):
+    for ds, clip in ((train, None), (validate, declared.validity.get("signals"))):
         work, y, _ = prepare_fit_data(ds, channel, latitude_deg=latitude_deg, rate_window_s=window)
         if "table_rate_dps" in ds:
             # the table's rate is a true input along the channel under test (rate tests align them)
             y = y - np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=float)) * 3600.0
-        x, _ = compiled.design(work)
+        # on the held-out run the declared model's inputs are clipped to the training ranges, as the
+        # stored model would be applied (never a silent extrapolation)
+        x, _ = compiled.design(work, clip=clip)
         out.append((x, y))
     (x_tr, y_tr), (x_va, y_va) = out
     probe = d.get("probe") or _first_probe(compiled, train)

@@ -47,7 +47,8 @@ from typing import Any
 import numpy as np
 
 from bench.errors import DataFormatError
-from bench.fit.base import FitResult, _jsonable
+from bench.fit.base import FitResult
+from bench.jsonsafe import jsonable as _jsonable
 
 SCHEMA = "gyrobench.fit.export"
 SCHEMA_VERSION = 1

@@ -8,7 +8,10 @@
 * ``gyro_x/y/z`` in deg/h (the wire unit is taken from the run's config snapshot
   ``gyro.output_units``: deg/s x 3600, rad/s x 180/pi x 3600), ``accel_x/y/z`` in g, ``temp_gyro``
   (device's own sensor), ``freq_x/y/z`` for resonator gyros;
-* ``temp_<probe>``: the nearest previous valid DS18B20 reading (NaN when none within ``max_age_s``);
+* ``temp_<probe>``: DS18B20 readings interpolated linearly in time between the two valid readings
+  around each second (a probe samples a continuous temperature; holding the previous reading would
+  delay it by up to a read period, which at an accelerated clock is minutes of bench time); NaN
+  where those readings are more than ``max_age_s`` apart or the second lies beyond the last one;
 * ``chamber_pv``, ``chamber_sp``, ``axis1_pos``, ``axis2_pos``, ``psu_v``, ``psu_a``, ``power_w``,
   ``psu_on`` (1/0): nearest previous telemetry sample, same age rule;
 * ``orientation``, ``segment_kind`` (str), ``temp_point_c``, ``repetition``, ``outer_deg``,
@@ -52,6 +55,25 @@ def _previous(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, max_age_s: fl
     return out
 
 
+def _interpolated(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """Linear interpolation between the samples around each ``t``; NaN across gaps over max_gap_s and
+    outside the sampled span (beyond ``max_gap_s`` after the last sample: the previous value)."""
+    out = np.full(t.shape, np.nan)
+    if t_src.size == 0:
+        return out
+    out[:] = np.interp(t, t_src, v_src)
+    after = np.searchsorted(t_src, t, side="left")           # first sample at or after t
+    before = after - 1
+    inside = (before >= 0) & (after < t_src.size)
+    gap = np.full(t.shape, np.inf)
+    gap[inside] = t_src[after[inside]] - t_src[before[inside]]
+    exact = (after < t_src.size) & (t_src[np.minimum(after, t_src.size - 1)] == t)
+    tail = (after >= t_src.size) & (t - t_src[-1] <= max_gap_s)
+    ok = exact | (inside & (gap <= max_gap_s)) | tail
+    out[~ok] = np.nan
+    return out
+
+
 def _probe_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -> dict[str, np.ndarray]:
     p = ProbeReadingRow
     with db.engine.connect() as conn:
@@ -61,7 +83,9 @@ def _probe_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -
     names = sorted({name for name, _, _ in rows})
     for name in names:
         arr = np.array([(t_, c) for n, t_, c in rows if n == name], dtype=np.float64)
-        cols[f"temp_{name}"] = _previous(arr[:, 0], arr[:, 1], t, max_age_s)
+        # a gap counts as a lost probe when it is much longer than this probe's usual read interval
+        usual = float(np.median(np.diff(arr[:, 0]))) if len(arr) > 2 else 0.0
+        cols[f"temp_{name}"] = _interpolated(arr[:, 0], arr[:, 1], t, max(max_age_s, 5.0 * usual))
     return cols
 
 
@@ -175,9 +199,6 @@ def export_parquet(db: Database, run_id: int, path: str | Path, *,
 
 
 # ---------------------------------------------------------------- measured-data dataset of a run
-
-
-
 def _segment_label_mask(db: Database, run_id: int, t: np.ndarray, where: dict) -> np.ndarray:
     """Rows whose bench time lies in a segment whose labels hold every ``where`` item."""
     with db.session() as s:

@@ -1,7 +1,8 @@
 /* /ui/close-loop : start a close-the-loop analysis (POST /close-loop: declared model, training run,
    held-out run); /ui/close-loop/{id} : its report (GET /close-loop/{id}, polled until done): per
    channel the verdict, the findings, validation and training errors before / after the added effects
-   (bar chart), the effects added and the final coefficients. */
+   (bar chart), the effects added and the final coefficients; on request the HTML report with its
+   plots (GET /close-loop/{id}/report). */
 "use strict";
 
 const ANALYSIS_ID = pathParam(2) === null ? null : Number(pathParam(2));
@@ -45,11 +46,33 @@ function renderReport(doc) {
           { name: "noise floor", value: r.noise_floor_dph }],
       })), { unit: "deg/h" })));
     for (const [ch, r] of channels) parts.push(renderChannel(ch, r));
+    parts.push(el("div.card", el("h2", "Report with plots"),
+      el("p.muted", "Residuals before / after against time, temperature and its rate; Allan deviation. "
+        + "The server re-runs the analysis to draw them, which takes a while."),
+      el("button#load-report", { type: "button", on: { click: loadReport } }, "Show the report"),
+      el("div#cl-report")));
   } else if (doc.status !== "failed") {
     parts.push(el("p.muted", "The analysis is running; this page updates when it is done."));
   }
   content().replaceChildren(...parts);
   return doc.status === "done" || doc.status === "failed";
+}
+
+/* GET /close-loop/{id}/report (HTML) in a sandboxed frame: no script of it runs. */
+async function loadReport() {
+  const box = document.getElementById("cl-report");
+  document.getElementById("load-report").disabled = true;
+  box.replaceChildren(el("p.muted", "Rendering…"));
+  try {
+    const html = await api(`/close-loop/${ANALYSIS_ID}/report`);
+    const frame = el("iframe#cl-report-frame.report", { sandbox: "", title: "close-the-loop report" });
+    frame.srcdoc = html;
+    box.replaceChildren(frame);
+  } catch (err) {
+    box.replaceChildren();
+    document.getElementById("load-report").disabled = false;
+    reportError(err, "close-the-loop report");
+  }
 }
 
 async function poll() {

@@ -191,6 +191,12 @@ function el(spec, attrs, ...children) {
   return node;
 }
 
+/* replaceChildren that skips null / undefined / false (conditional parts of a page). */
+function fill(node, ...children) {
+  node.replaceChildren(...children.flat().filter((c) => c !== null && c !== undefined && c !== false));
+  return node;
+}
+
 function content() {
   return document.getElementById("content");
 }

@@ -28,7 +28,7 @@ function renderFit(doc) {
         el("td.num", typeof value === "number" ? value.toPrecision(9) : JSON.stringify(value)), el("td", units[term] || "")));
     }
   }
-  document.getElementById("fit").replaceChildren(
+  fill(document.getElementById("fit"),
     el("p", doc.accepted ? statusBadge("accepted") : statusBadge("not accepted"), " ",
       el("a", { href: `/ui/gyros/${encodeURIComponent(doc.gyro_id)}` }, `gyro ${doc.gyro_id}`),
       ` · created ${fmtTime(doc.created_at)} · training runs `,

@@ -17,12 +17,23 @@ function coefficientTable(channels) {
   return el("table.coefficients", el("thead", el("tr", ["Channel", "Term", "Value", "Unit"].map((h) => el("th", h)))), el("tbody", rows));
 }
 
+/* "t1 25 to 26.1 °C-ish ranges": the signal ranges the fit is valid for (channels with the same ranges merged). */
 function validityText(channels) {
-  const parts = [];
+  const byText = new Map();
   for (const [channel, entry] of Object.entries(channels || {})) {
-    if (entry.validity) parts.push(`${channel}: ${JSON.stringify(entry.validity)}`);
+    const v = entry.validity;
+    if (!v) continue;
+    let text;
+    if (v.signals && typeof v.signals === "object") {
+      text = Object.entries(v.signals).map(([name, range]) => (Array.isArray(range) && range.length === 2
+        ? `${name} ${fmtNum(range[0])} to ${fmtNum(range[1])}` : `${name} ${JSON.stringify(range)}`)).join(", ");
+      if (v.outside) text += ` (outside: ${v.outside})`;
+    } else {
+      text = JSON.stringify(v);
+    }
+    byText.set(text, [...(byText.get(text) || []), channel]);
   }
-  return parts.length ? `Valid for ${parts.join("; ")}` : "";
+  return [...byText].map(([text, chs]) => `Valid for ${chs.join(", ")}: ${text}`).join(" · ");
 }
 
 function renderCoefficients(doc) {

@@ -40,7 +40,7 @@ function renderSummary(run) {
   setTitle(`Run #${run.id}: ${run.procedure}`);
   const step = run.step ? `${run.step.index + 1} of ${run.step.n_steps}: ${run.step.kind} (${run.step.status})` : "–";
   const box = document.getElementById("summary");
-  box.replaceChildren(
+  fill(box,
     el("div.grid",
       dl([
         ["Status", statusBadge(run.status, run.outcome)],
@@ -101,17 +101,21 @@ function renderLatest(latest) {
 }
 
 function renderSteps(run) {
+  // bench times shown from the first step's start
+  const t0 = (run.steps || []).map((s) => s.started_t).find((t) => t !== null && t !== undefined);
+  const rel = (t) => (t === null || t === undefined || t0 === undefined ? "–" : `+${fmtDuration(t - t0)}`);
   const rows = (run.steps || []).map((s) => el("tr", { class: s.index === run.step_index ? "current" : null },
     el("td.num", String(s.index + 1)), el("td", s.kind), el("td", statusBadge(s.status)),
-    el("td.num", fmtNum(s.started_t === null ? null : s.started_t, 10)), el("td.num", fmtNum(s.finished_t === null ? null : s.finished_t, 10))));
+    el("td.num", rel(s.started_t)), el("td.num", rel(s.finished_t))));
   const extra = [];
-  for (const g of run.gaps || []) extra.push(el("li", `gap ${fmtNum(g.t_from, 10)}–${fmtNum(g.t_to, 10)} s: ${g.reason} (${g.frames_missing} frames missing)`));
-  for (const s of run.suspensions || []) extra.push(el("li", `suspended ${fmtNum(s.t_from, 10)}–${fmtNum(s.t_to, 10)} s: ${s.reason}`));
-  document.getElementById("steps").replaceChildren(
-    el("table", el("thead", el("tr", ["#", "Step", "Status", "Started (bench s)", "Finished (bench s)"].map((h) => el("th", h)))),
+  for (const g of run.gaps || []) extra.push(el("li", `gap ${rel(g.t_from)} to ${rel(g.t_to)}: ${g.reason} (${g.frames_missing} frames missing)`));
+  for (const s of run.suspensions || []) extra.push(el("li", `suspended ${rel(s.t_from)} to ${rel(s.t_to)}: ${s.reason}`));
+  fill(document.getElementById("steps"),
+    el("table", el("thead", el("tr", ["#", "Step", "Status", "Started (bench time)", "Finished (bench time)"].map((h) => el("th", h)))),
       el("tbody", rows.length ? rows : el("tr", el("td.muted", { colSpan: 5 }, "The worker has not planned the steps yet.")))),
     extra.length ? el("ul", extra) : null,
-    run.fits ? el("pre", JSON.stringify(run.fits, null, 2)) : null);
+    run.fits ? el("h3", "Fits of this run") : null,
+    run.fits ? el("pre#run-fits", JSON.stringify(run.fits, null, 2)) : null);
 }
 
 /* -------------------------------------------------------------------------------- data + plots */
@@ -120,7 +124,8 @@ function appendData(columns) {
   if (!t.length) return 0;
   const s = state.series;
   if (state.t0 === undefined) state.t0 = Math.floor(t[0]);
-  const names = Object.keys(columns).filter((n) => n === "chamber_sp" || n === "chamber_pv" || n.startsWith("temp_") || n.startsWith("gyro_"));
+  const names = Object.keys(columns).filter((n) => n === "chamber_sp" || n === "chamber_pv"
+    || (n.startsWith("temp_") && n !== "temp_point_c") || n.startsWith("gyro_"));
   const before = s.t.length;
   for (let i = 0; i < t.length; i++) {
     if (state.lastBenchT !== null && t[i] <= state.lastBenchT) continue;
@@ -150,7 +155,8 @@ function drawPlots() {
     { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
     { name: "chamber air", values: s.cols.chamber_pv || [], color: "#d62728" },
   ]);
-  state.plots.probes.setData(s.t, pick("temp_").map((n) => ({ name: n.replace(/^temp_/, ""), values: s.cols[n] })));
+  const temps = pick("temp_").filter((n) => n !== "temp_point_c");
+  state.plots.probes.setData(s.t, temps.map((n) => ({ name: n === "temp_gyro" ? "gyro sensor" : n.replace(/^temp_/, ""), values: s.cols[n] })));
   state.plots.gyro.setData(s.t, pick("gyro_").map((n) => ({ name: n.replace(/^gyro_/, ""), values: s.cols[n] })));
   document.getElementById("data-info").textContent = s.t.length
     ? `${s.t.length} points, every ${state.every} s of data (1-s means)` : "";

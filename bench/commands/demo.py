@@ -1,0 +1,155 @@
+"""``bench demo``: the product end to end on the embedded default (simulated bench + SQLite file).
+
+It starts the service exactly as ``bench serve`` does (API + a worker for a simulated bench at high
+clock speed), then acts as a lab operator over HTTP: queues two shortened thermal-ramp runs (a
+cooling ramp for modelling, a heating ramp at another rate as the held-out run), watches them, fetches
+the fitted coefficients by gyro ID, runs close-the-loop on the pair, and prints the numbers.
+"""
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+import socket
+import threading
+import time
+from pathlib import Path
+
+import typer
+
+from bench.commands.common import fail, guarded
+
+GYRO_ID = "DEMO-RLG-001"
+# modelling: cool 50 -> -30 C at 1 C/min; held out: heat -30 -> 50 C at 0.5 C/min (same range, other
+# direction and rate: the weakly-correlated validation S001 asks for)
+TRAIN = {"start_c": 50.0, "soak_h": 2.0, "warmup_min": 30.0, "rate_c_per_min": 1.0, "end_c": -30.0,
+         "final_hold_min": 120.0, "fit_models": ["dynamic", "static"]}
+VALIDATE = {"start_c": -30.0, "soak_h": 2.0, "warmup_min": 30.0, "rate_c_per_min": 0.5, "end_c": 50.0,
+            "final_hold_min": 120.0, "fit_models": ["dynamic"]}
+
+
+def register(app: typer.Typer) -> None:
+    app.command("demo")(demo_command)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@guarded
+def demo_command(
+    directory: str = typer.Option("var/demo", "--dir", help="where the demo database and reports go"),
+    speed: float = typer.Option(3600.0, "--speed", min=1.0, help="simulated bench: bench seconds per wall second"),
+    port: int = typer.Option(0, "--port", help="API port (0: a free one)"),
+    timeout_s: float = typer.Option(600.0, "--timeout", help="give up after this many wall seconds"),
+) -> None:
+    """Short accelerated campaign on the simulated bench, fit, coefficients over HTTP, close-the-loop."""
+    import httpx
+    import uvicorn
+
+    from api.app import create_app
+    from bench.sim.bench import SimulatedBench
+    from bench.storage import open_database
+    from bench.worker import Worker
+
+    out = Path(directory)
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    db_url = f"sqlite:///{(out / 'bench.sqlite').resolve()}"
+    db = open_database(db_url)
+    token = secrets.token_urlsafe(16)
+    port = port or _free_port()
+    base = f"http://127.0.0.1:{port}"
+    sim = SimulatedBench(speed=speed, scenario="default", bench_name="sim1").start()
+    worker = Worker(db, "sim1", sim.config, None, sim.clock)
+    server = uvicorn.Server(uvicorn.Config(create_app(db, tokens={token: "admin"}), host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, name="demo-api", daemon=True)
+    deadline = time.monotonic() + timeout_s
+    try:
+        worker.start_thread()
+        thread.start()
+        while not server.started:
+            if time.monotonic() > deadline or not thread.is_alive():
+                fail("the API did not start")
+            time.sleep(0.05)
+        typer.echo(f"service up: {base}  (simulated bench x{speed:g}, database {db_url})")
+        http = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=30.0)
+        train_id = _run(http, "thermal_ramp", TRAIN, "modelling run: +50 -> -30 C at 1 C/min", deadline)
+        val_id = _run(http, "thermal_ramp", VALIDATE, "held-out run: -30 -> +50 C at 0.5 C/min", deadline)
+
+        coeff = _ok(http.get(f"/gyros/{GYRO_ID}/coefficients", params={"model": "dynamic"}))
+        typer.echo(f"\nGET {base}/gyros/{GYRO_ID}/coefficients?model=dynamic")
+        for model in coeff.get("models", [coeff]):
+            for ch, entry in (model.get("channels") or {}).items():
+                terms = ", ".join(f"{k}={v:.4g}" for k, v in entry["coefficients"].items())
+                typer.echo(f"  {model.get('model', 'dynamic')} / {ch}: {terms}")
+
+        job = _ok(http.post("/close-loop", json={"model": "static", "train_run_id": train_id,
+                                                 "validation_run_id": val_id}))
+        report = _wait(http, f"/close-loop/{job['id']}", deadline, done=("done", "failed"))
+        if report["status"] != "done":
+            fail(f"close-the-loop failed: {report.get('error')}")
+        typer.echo(f"\nclose-the-loop (declared model: static cubic; trained on run {train_id}, "
+                   f"validated on run {val_id}):")
+        for ch, r in report["result"]["channels"].items():
+            added = ", ".join(e["kind"] for e in r["effects_added"]) or "nothing"
+            typer.echo(f"  {ch}: {r['verdict']}; validation std of 100-s means "
+                       f"{r['before']['validation_std100_dph']:.4f} -> {r['after']['validation_std100_dph']:.4f} "
+                       f"deg/h (noise floor {r['noise_floor_dph']:.4f}); added: {added}")
+        html = http.get(f"/close-loop/{job['id']}/report")
+        if html.status_code == 200 and html.text.lstrip().startswith("<!DOCTYPE"):
+            (out / "close-loop.html").write_text(html.text)
+            typer.echo(f"  report: {out / 'close-loop.html'}")
+        typer.echo(f"\nDashboard: {base}/ui/ while the demo runs; to browse these results again:\n"
+                   f"  BENCH_DATABASE_URL={db_url} BENCH_TOKENS=admin:{token} .venv/bin/bench serve"
+                   f"  -> http://127.0.0.1:8000/ui/")
+    finally:
+        server.should_exit = True
+        worker.stop()
+        thread.join(timeout=10)
+        sim.stop()
+        db.dispose()
+
+
+def _ok(resp):
+    if resp.status_code >= 400:
+        fail(f"{resp.request.method} {resp.request.url.path}: HTTP {resp.status_code}: {resp.text[:500]}")
+    return resp.json()
+
+
+def _wait(http, path: str, deadline: float, done: tuple[str, ...]) -> dict:
+    while True:
+        doc = _ok(http.get(path))
+        if doc.get("status") in done:
+            return doc
+        if time.monotonic() > deadline:
+            fail(f"timed out waiting for {path} (status {doc.get('status')})")
+        time.sleep(0.2)
+
+
+def _run(http, procedure: str, params: dict, label: str, deadline: float) -> int:
+    from rich.progress import BarColumn, Progress, TextColumn
+
+    run = _ok(http.post("/runs", json={"procedure": procedure, "gyro_id": GYRO_ID, "bench": "sim1",
+                                       "params": params, "operator": "demo"}))
+    run_id = run["id"]
+    typer.echo(f"queued run {run_id}: {procedure} ({label})")
+    with Progress(TextColumn("  run {task.fields[run]}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+                  TextColumn("{task.fields[status]}"), transient=False) as bar:
+        task = bar.add_task("run", total=100, run=run_id, status="queued")
+        while True:
+            doc = _ok(http.get(f"/runs/{run_id}"))
+            pct = float(doc.get("progress_percent") or (doc.get("progress") or 0) or 0)
+            bar.update(task, completed=min(100.0, pct if pct > 1 else pct * 100), status=doc["status"])
+            if doc["status"] in ("completed", "aborted", "failed"):
+                break
+            if time.monotonic() > deadline:
+                fail(f"timed out waiting for run {run_id}")
+            time.sleep(0.2)
+    if doc["status"] != "completed":
+        fail(f"run {run_id} ended {doc['status']}: {doc.get('error')}")
+    return run_id
