@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from fastapi import FastAPI
 
-from api import problems
+from api import dashboard, problems
 from api.auth import parse_tokens, tokens_from_env
 from api.routers import fits, meta, runs
 from bench.storage.db import Database, open_database
@@ -45,6 +45,7 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
     app.include_router(runs.router)
     app.include_router(fits.router)
     app.include_router(meta.router)
+    app.include_router(dashboard.router)
     return app
 
 

@@ -227,6 +227,9 @@ def _dataset_section(label: str, result: FitResult, dataset: Dataset, pred: Pred
     if temp is not None:
         segs = run_segments(t, dataset.columns.get("run"))
         window = float(result.definition.get("average_s", 100.0) or 100.0)
+        finite = np.isfinite(temp)
+        if finite.sum() >= 2 and not finite.all():    # missed probe readings: bridge them for the plot
+            temp = np.interp(t, t[finite], temp[finite])
         smooth, rate = smoothed_and_rate(t, temp, window, segs)
         parts.append(plot_residuals(residual, smooth, f"{temp_label} (C)", f"{name}: residual vs T", unit, flagged))
         parts.append(plot_residuals(residual, rate, "dT/dt (C/min)", f"{name}: residual vs dT/dt", unit, flagged))

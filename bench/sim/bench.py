@@ -82,7 +82,9 @@ class SimulatedBench:
         self.psu = PsuSimulator(self.psu_model, self.clock)
         frame = "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a"
         self.gyro = GyroStreamSimulator(self.physics, self.clock, self.data_rate_hz, frame)
-        self.w1 = W1TreeSimulator(self.physics, self.clock, self.w1_root, self.serials)
+        # refresh the w1 files often in wall time: at x3600 a 20 ms refresh would make every reading
+        # up to 72 bench seconds old (a real read triggers a fresh conversion)
+        self.w1 = W1TreeSimulator(self.physics, self.clock, self.w1_root, self.serials, min_wall_interval_s=0.005)
         self.started = False
 
     # ---------------------------------------------------------------- physics inputs

@@ -13,7 +13,8 @@
   delay it by up to a read period, which at an accelerated clock is minutes of bench time); NaN
   where those readings are more than ``max_age_s`` apart or the second lies beyond the last one;
 * ``chamber_pv``, ``chamber_sp``, ``axis1_pos``, ``axis2_pos``, ``psu_v``, ``psu_a``, ``power_w``,
-  ``psu_on`` (1/0): nearest previous telemetry sample, same age rule;
+  ``psu_on`` (1/0): nearest previous telemetry sample (NaN when older than ``max_age_s`` or five
+  times the device's usual telemetry interval, whichever is longer);
 * ``orientation``, ``segment_kind`` (str), ``temp_point_c``, ``repetition``, ``outer_deg``,
   ``inner_deg``: labels of the segment covering the time (the latest-started one if several).
 """
@@ -102,9 +103,11 @@ def _telemetry_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: floa
             if not rows:
                 continue
             arr = np.array([[np.nan if v is None else float(v) for v in r] for r in rows], dtype=np.float64)
+            # a sample is stale when much older than this device's usual telemetry interval
+            usual = float(np.median(np.diff(arr[:, 0]))) if len(arr) > 2 else 0.0
             for i, (name, _) in enumerate(fields, start=1):
                 if np.isfinite(arr[:, i]).any():
-                    cols[name] = _previous(arr[:, 0], arr[:, i], t, max_age_s)
+                    cols[name] = _previous(arr[:, 0], arr[:, i], t, max(max_age_s, 5.0 * usual))
     if "psu_v" in cols and "psu_a" in cols:
         cols["power_w"] = cols["psu_v"] * cols["psu_a"]
     return cols
