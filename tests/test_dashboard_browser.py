@@ -39,26 +39,6 @@ LONG_SOAK = {"orientation": "", "start_c": "30", "soak_h": "2", "warmup_min": "1
 pytestmark = pytest.mark.timeout(120)
 
 
-def _serve_main() -> None:
-    """Subprocess entry: ``bench serve`` with the dashboard router included if ``create_app`` does not
-    include it yet (the integrator adds it to api/app.py)."""
-    import api.app as app_module
-    from api import dashboard
-
-    real_create_app = app_module.create_app
-
-    def create_app_with_dashboard(*args, **kwargs):
-        app = real_create_app(*args, **kwargs)
-        if not any(str(getattr(r, "path", "")).startswith("/ui") for r in app.routes):
-            app.include_router(dashboard.router)
-        return app
-
-    app_module.create_app = create_app_with_dashboard
-    from bench.cli import app
-
-    app(sys.argv[1:], prog_name="bench")
-
-
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -78,8 +58,7 @@ def service(tmp_path_factory):
     env = dict(os.environ, BENCH_DATABASE_URL=f"sqlite:///{tmp / 'bench.sqlite'}",
                BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items()), PYTHONUNBUFFERED="1")
     log = open(tmp / "serve.log", "w")
-    code = "from tests.test_dashboard_browser import _serve_main; _serve_main()"
-    proc = subprocess.Popen([sys.executable, "-c", code, "serve", "--host", "127.0.0.1", "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "bench.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
                              "--speed", str(SPEED), "--log-level", "warning"],
                             cwd=str(REPO), env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
