@@ -1,5 +1,5 @@
 """``bench serve`` end to end: API + worker + simulated bench (real drivers over loopback) in one
-process on the embedded SQLite default.  Through HTTP: start a shortened thermal_ramp, watch its
+process, on the embedded SQLite default and on PostgreSQL.  Through HTTP: start a shortened thermal_ramp, watch its
 progress, stop it, start another, let it finish, fetch the coefficients by gyro ID."""
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import httpx
+import pytest
 
 from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_for
 from tests.test_api_process import free_port
@@ -17,9 +18,17 @@ from tests.test_api_process import free_port
 BENCH = str(Path(sys.executable).with_name("bench"))
 
 
-def test_serve_simulated_bench_end_to_end(tmp_path):
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database_url(request):
+    """None = the embedded SQLite default; else the session's fresh PostgreSQL database."""
+    return None if request.param == "sqlite" else request.getfixturevalue("pg_url")
+
+
+def test_serve_simulated_bench_end_to_end(tmp_path, database_url):
     port = free_port()
     env = {k: v for k, v in os.environ.items() if k != "BENCH_DATABASE_URL"}   # the embedded default
+    if database_url:
+        env["BENCH_DATABASE_URL"] = database_url
     env["BENCH_TOKENS"] = TOKENS_TEXT
     log = open(tmp_path / "serve.log", "wb")
     proc = subprocess.Popen([BENCH, "serve", "--port", str(port), "--speed", "200", "--log-level", "warning"],
@@ -34,7 +43,7 @@ def test_serve_simulated_bench_end_to_end(tmp_path):
             return benches and benches[0]["online"] and benches[0]
         bench = wait_for(online, 30, "bench serve up with its simulated bench", interval=0.2)
         assert bench["name"] == "sim1" and bench["devices"]["chamber"]["transport"] == "modbus_tcp"
-        assert (tmp_path / "var" / "bench.sqlite").exists()
+        assert (tmp_path / "var" / "bench.sqlite").exists() == (database_url is None)
         params = dict(SHORT_RAMP, orientation=None)
         body = {"procedure": "thermal_ramp", "gyro_id": "SIM-42", "bench": "sim1", "params": params}
         first = httpx.post(f"{base}/runs", json=body, headers=OPERATOR, timeout=10).json()["id"]
