@@ -30,6 +30,7 @@ import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
+from bench.fit.linear import newey_west_lags
 from bench.fit.metrics import bias_stability, window_means
 
 BLOCK_S = 100.0
@@ -105,7 +106,7 @@ def hac_wald_p(X: np.ndarray, y: np.ndarray, new_cols: list[int]) -> float:
     ok = _finite_rows(X, y)
     X, y = X[ok], y[ok]
     n = len(y)
-    maxlags = max(1, int(np.floor(4 * (n / 100.0) ** (2.0 / 9.0))))
+    maxlags = max(1, newey_west_lags(n))
     scale = np.sqrt(np.mean(X ** 2, axis=0))
     scale[scale == 0] = 1.0
     res = sm.OLS(y, X / scale).fit(cov_type="HAC", cov_kwds={"maxlags": maxlags})
@@ -174,7 +175,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
         out["peak_amplitude_dph"] = sine_fit(best.x)[1]
     tt_h = np.arange(n) * 100.0 / 3600.0
     X = sm.add_constant(tt_h)
-    maxlags = max(1, int(np.floor(4 * (n / 100.0) ** (2.0 / 9.0))))
+    maxlags = max(1, newey_west_lags(n))
     res = sm.OLS(means, X).fit(cov_type="HAC", cov_kwds={"maxlags": maxlags})
     out["trend_dph_per_h"] = float(res.params[1])
     out["trend_p"] = float(res.pvalues[1])

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.devices.orientation import validate_code
 from bench.errors import DataFormatError
 from bench.fit.base import Dataset
 
@@ -48,22 +49,14 @@ PREFIXES = ("gyro_", "temp_", "freq_")
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
 _META_RE = re.compile(r"^#\s*([A-Za-z_][A-Za-z0-9_]*)\s*:\s?(.*)$")
 _NUMERIC_META = ("latitude_deg", "sample_period_s")
-_AXIS = {"E": (0, 1), "W": (0, -1), "N": (1, 1), "S": (1, -1), "U": (2, 1), "D": (2, -1)}
 
 
 def validate_orientation(code: str) -> str:
-    """Return ``code`` if it is a right-handed orientation code (e.g. ``NUE``), else raise ValueError."""
-    if len(code) != 3 or any(c not in _AXIS for c in code):
-        raise ValueError(f"orientation {code!r}: need three letters from E W N S U D")
-    axes = [_AXIS[c][0] for c in code]
-    if sorted(axes) != [0, 1, 2]:
-        raise ValueError(f"orientation {code!r}: body axes must point along three different ENU axes")
-    vec = np.zeros((3, 3))
-    for row, c in enumerate(code):
-        vec[row, _AXIS[c][0]] = _AXIS[c][1]
-    if np.linalg.det(vec) < 0:
-        raise ValueError(f"orientation {code!r}: left-handed frame (x cross y must equal z)")
-    return code
+    """Return ``code`` if it is an upper-case right-handed orientation code (e.g. ``NUE``), else raise
+    ValueError (``bench.devices.orientation.validate_code`` is the one definition of a valid code)."""
+    if not isinstance(code, str) or code != code.strip().upper():
+        raise ValueError(f"orientation {code!r}: need three upper-case letters from E W N S U D")
+    return validate_code(code)
 
 
 def _check_column_name(name: str) -> str | None:

@@ -43,16 +43,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.devices.orientation import code_matrix
 from bench.errors import DataFormatError
 from bench.fit.base import EARTH_RATE_DPH, Dataset
 from bench.fit.csvio import ORIENTATION_DEFAULT, validate_orientation
 
-DEFAULT_RATE_WINDOW_S = 120.0
-EIGHT_POSITIONS = ("ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
-_ENU = {"E": (1.0, 0.0, 0.0), "W": (-1.0, 0.0, 0.0), "N": (0.0, 1.0, 0.0), "S": (0.0, -1.0, 0.0),
-        "U": (0.0, 0.0, 1.0), "D": (0.0, 0.0, -1.0)}
 _BODY = {"x": 0, "y": 1, "z": 2}
 
+DEFAULT_RATE_WINDOW_S = 120.0
+EIGHT_POSITIONS = ("ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
 
 # ----------------------------------------------------------------------------------------- outliers
 def pauta_mask(x: np.ndarray, *, time: np.ndarray | None = None, window_s: float | None = None,
@@ -270,7 +269,7 @@ def gradient(ds: Dataset, a: str, b: str) -> np.ndarray:
 def orientation_axes(code: str) -> np.ndarray:
     """(3,3) array; row i = unit vector of body axis i (x, y, z) in ENU for an orientation code."""
     validate_orientation(code)
-    return np.array([_ENU[c] for c in code])
+    return code_matrix(code).T
 
 
 def earth_rate_enu(latitude_deg: float) -> np.ndarray:

@@ -35,6 +35,7 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
+from bench.devices.orientation import OrientationError, code_matrix
 from bench.errors import PlanError
 from bench.fit.base import EARTH_RATE_DPH
 from bench.sim.noise import STREAM_ACCEL, STREAM_FREQ, CorrelatedNoise, RandomStepLevels, WhiteNoise, stream_rng
@@ -99,22 +100,19 @@ class PhysicsInputs:
         )
 
 
-_AXES = {"E": (1.0, 0.0, 0.0), "W": (-1.0, 0.0, 0.0), "N": (0.0, 1.0, 0.0),
-         "S": (0.0, -1.0, 0.0), "U": (0.0, 0.0, 1.0), "D": (0.0, 0.0, -1.0)}
-
-
 def orientation_matrix(code: str) -> np.ndarray:
     """Body-to-level rotation for an orientation code such as ``NUE`` (body x North, y Up, z East).
 
     Letters as in seed 000's eight-position test and the measured-data CSV; columns = body axes in
-    ENU.  Raises PlanError for anything that is not a right-handed code.
+    ENU (``bench.devices.orientation.code_matrix``).  Raises PlanError for anything that is not an
+    upper-case right-handed code.
     """
-    if not isinstance(code, str) or len(code) != 3 or any(c not in _AXES for c in code):
-        raise PlanError(f"orientation {code!r}: need three letters from E W N S U D")
-    r = np.array([_AXES[c] for c in code]).T
-    if abs(np.linalg.det(r) - 1.0) > 1e-9:
-        raise PlanError(f"orientation {code!r}: not a right-handed frame (x cross y must equal z)")
-    return r
+    if not isinstance(code, str) or code != code.strip().upper():
+        raise PlanError(f"orientation {code!r}: need three upper-case letters from E W N S U D")
+    try:
+        return code_matrix(code)
+    except OrientationError as exc:
+        raise PlanError(str(exc)) from None
 
 
 def earth_rate_enu_dph(latitude_deg: float) -> np.ndarray:
