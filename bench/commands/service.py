@@ -169,12 +169,42 @@ def coefficients_command(
     model: Optional[str] = typer.Option(None, "--model", help="only this model"),
     version: Optional[int] = typer.Option(None, "--version", min=1, help="this version (needs --model)"),
     as_json: bool = typer.Option(False, "--json", help="print the JSON document"),
+    fmt: Optional[str] = typer.Option(None, "--format",
+                                      help="export one model (--model) as json | px4 | ardupilot | c-header"),
+    output: Optional[str] = typer.Option(None, "-o", "--output", help="write the export to this file"),
+    px4_instance: int = typer.Option(0, "--px4-instance", min=0, max=3, help="PX4 gyro instance (TC_G<i>_)"),
+    px4_device_id: int = typer.Option(0, "--px4-device-id", help="PX4 TC_G<i>_ID: the gyro's device id"),
+    ardupilot_imu: int = typer.Option(1, "--ardupilot-imu", min=1, max=3, help="ArduPilot IMU number (INS_TCAL<n>_)"),
+    ardupilot_caltemp: Optional[float] = typer.Option(None, "--ardupilot-caltemp",
+                                                      help="temperature of the exported gyro offsets (default 35 C)"),
 ) -> None:
-    """Print a gyro's coefficients: the latest accepted fit of each model."""
+    """Print a gyro's coefficients: the latest accepted fit of each model, or export one model for firmware."""
     from api.coefficients import NoCoefficients, load_coefficients
     from bench.storage import open_database
 
     db = open_database()
+    if fmt is not None:
+        from api.coefficients import export_coefficients
+        from bench.fit.firmware import NotExpressible
+
+        if model is None:
+            fail("--format needs --model: an export holds one model")
+        options = {"px4_instance": px4_instance, "px4_device_id": px4_device_id, "ardupilot_imu": ardupilot_imu,
+                   "ardupilot_caltemp_c": ardupilot_caltemp}
+        try:
+            text, _media, _suffix = export_coefficients(db, gyro, model, fmt, version=version, options=options)
+        except NoCoefficients as exc:
+            fail(str(exc), code=1)
+        except NotExpressible as exc:
+            fail(f"cannot export: {exc}", code=3)
+        if output is None or output == "-":
+            sys.stdout.write(text)
+        else:
+            tmp = Path(output + ".tmp")
+            tmp.write_text(text)
+            tmp.replace(output)
+            typer.echo(f"wrote {output}", err=True)
+        return
     try:
         doc = load_coefficients(db, gyro, model=model, version=version)
     except NoCoefficients as exc:
