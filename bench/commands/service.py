@@ -57,19 +57,35 @@ def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
     return make_clock(speed)
 
 
-def _tokens_or_generate() -> str:
+def write_secret_file(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` readable by its owner only (mode 0600, also when the file existed)."""
     import os
 
-    from api.auth import ENV_TOKENS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, text.encode())
+    finally:
+        os.close(fd)
+    return path
 
-    text = os.environ.get(ENV_TOKENS, "").strip()
-    if text:
-        return text
+
+def _tokens_or_generate() -> str:
+    """``BENCH_TOKENS``, or fresh tokens written to ``BENCH_TOKENS_FILE`` (0600) whose path is printed;
+    the tokens themselves never go to the log."""
+    from api.auth import ENV_TOKENS
+    from bench.settings import load_settings
+
+    settings = load_settings()
+    if settings.tokens:
+        return settings.tokens
     pairs = {role: secrets.token_urlsafe(18) for role in ("viewer", "operator", "admin")}
-    typer.secho(f"{ENV_TOKENS} is not set; tokens for this session:", fg=typer.colors.YELLOW, err=True)
-    for role, token in pairs.items():
-        typer.echo(f"  {role}: {token}", err=True)
-    return ",".join(f"{r}:{t}" for r, t in pairs.items())
+    text = ",".join(f"{r}:{t}" for r, t in pairs.items())
+    path = write_secret_file(settings.tokens_file, text + "\n").resolve()
+    typer.secho(f"{ENV_TOKENS} is not set; generated viewer, operator and admin tokens are in {path} (mode 0600, "
+                f"{ENV_TOKENS} format)", fg=typer.colors.YELLOW, err=True)
+    return text
 
 
 # ------------------------------------------------------------------------------------------ serve
