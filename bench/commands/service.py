@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import secrets
 import signal
 import sys
@@ -99,15 +98,18 @@ def serve_command(
     scenario: str = typer.Option("default", "--scenario", help="simulated bench scenario (name or JSON file)"),
     bench_name: str = typer.Option("sim1", "--bench-name", help="name of the simulated bench"),
     log_level: str = typer.Option("info", "--log-level"),
+    log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
+                                             "default $BENCH_LOG_FORMAT or text"),
 ) -> None:
-    """Run the API and one worker per configured bench in this process."""
+    """Run the API (metrics at /metrics) and one worker per configured bench in this process."""
     import uvicorn
 
     from api.app import create_app
+    from bench.logs import configure_logging, uvicorn_log_config
     from bench.storage import open_database
     from bench.worker import Worker
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log_format = configure_logging(log_level, log_format)
     db = open_database()
     tokens = _tokens_or_generate()
     sim = None
@@ -128,7 +130,8 @@ def serve_command(
             w.start_thread()
         typer.echo(f"database {db.dialect}; benches: {', '.join(w.bench_name for w in workers)}; "
                    f"API on http://{host}:{port}/docs", err=True)
-        uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower())
+        uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower(),
+                    log_config=uvicorn_log_config(log_format))
     finally:
         for w in workers:
             w.stop()
@@ -150,6 +153,11 @@ def worker_command(
                                         "the worker died (wall seconds)"),
     poll_s: float = typer.Option(0.5, "--poll", min=0.01, help="queue polling period, wall seconds"),
     log_level: str = typer.Option("info", "--log-level"),
+    log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
+                                             "default $BENCH_LOG_FORMAT or text"),
+    metrics_port: Optional[int] = typer.Option(None, "--metrics-port", min=0, max=65535,
+                                               help="serve Prometheus metrics on this port (0: any free port)"),
+    metrics_addr: str = typer.Option("127.0.0.1", "--metrics-addr", help="address of the metrics server"),
 ) -> None:
     """Serve one bench: claim its queued runs, execute them, resume a run whose worker died."""
     from bench.config import BenchConfig
@@ -158,7 +166,9 @@ def worker_command(
     from bench.worker import Worker
     from sqlalchemy import select
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from bench.logs import configure_logging
+
+    configure_logging(log_level, log_format)
     db = open_database()
     clock_doc = None
     if config:
@@ -174,6 +184,11 @@ def worker_command(
     worker = Worker(db, bench, cfg, None, _clock(clock_doc, speed), heartbeat_s=heartbeat_s,
                     stale_after_s=stale_after_s, poll_s=poll_s)
     signal.signal(signal.SIGTERM, lambda *_: worker.stop())
+    if metrics_port is not None:
+        from bench.metrics import serve_worker_metrics
+
+        server, _thread = serve_worker_metrics(worker, metrics_port, metrics_addr)
+        typer.echo(f"worker metrics on http://{metrics_addr}:{server.server_port}/metrics", err=True)
     typer.echo(f"worker {worker.worker_id} serving bench {bench!r} ({db.dialect})", err=True)
     worker.run_forever()
 

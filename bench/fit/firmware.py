@@ -271,7 +271,7 @@ def px4_params(gyro_id: str, results: list[FitResult], *, instance: int = 0, dev
     g = f"TC_G{instance}"
     lines = ["# PX4 sensor thermal compensation parameters (gyro)"]
     _head(lines, "#", gyro_id, label, any_cub, [AXES[a] for a in range(3) if a not in cubics])
-    lines += [f"# offset = X0 + X1*d + X2*d^2 + X3*d^3 [rad/s], d = clip(T, TMIN, TMAX) - TREF; corrected = raw - offset",
+    lines += ["# offset = X0 + X1*d + X2*d^2 + X3*d^3 [rad/s], d = clip(T, TMIN, TMAX) - TREF; corrected = raw - offset",
               f"# {g}_ID must be the gyro's device id (CAL_GYRO{instance}_ID) for PX4 to apply these",
               "#", "# Vehicle-Id Component-Id Name Value Type"]
 
