@@ -304,7 +304,8 @@ def test_dockerfile_base_install_and_copied_sources():
     text = DOCKERFILE.read_text()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     assert lines[0] == "FROM python:3.11-slim"
-    assert re.search(r"pip install \.(\s|$)", text), "the image installs the package from the source tree"
+    assert re.search(r"pip install -c constraints\.txt \.(\s|$)", text), \
+        "the image installs the package from the source tree with the pinned versions"
     for ln in lines:
         if ln.startswith("COPY "):
             for src in shlex.split(ln)[1:-1]:
