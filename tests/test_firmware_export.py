@@ -112,6 +112,10 @@ def test_px4_file_lines_units_and_convention(static3, sweep):
         err = np.max(np.abs(got_dph - want_dph))
         assert err < TOL_DPH, f"axis {a}: {err} deg/h"
         assert flagged.any() and not flagged.all()
+        # PX4 holds parameters as float32: that rounding alone stays far below the gyro's noise
+        p32 = {k: float(np.float32(v)) for k, v in p.items()}
+        got32 = px4_corrected_rads(p32, 1, a, sweep[f"gyro_{'xyz'[a]}"] * RAD_S_IN_DPH, t) / RAD_S_IN_DPH
+        assert np.max(np.abs(got32 - want_dph)) < 1e-4
 
 
 # -------------------------------------------------------------------------------- ArduPilot
