@@ -5,7 +5,8 @@
   ``--config FILE`` (repeatable) the workers drive the benches those files describe.
 * ``worker``: one bench's worker on its own (the API may run elsewhere; killing either leaves the
   other going, and a killed worker's run is resumed when a worker for that bench returns).
-* ``coefficients``: a gyro's accepted coefficients from the database.
+* ``coefficients``: a gyro's accepted coefficients from the database, or one model exported for firmware
+  (``--format json|px4|ardupilot|c-header``, ``bench.fit.firmware``; refused with the reason, exit code 3).
 * ``import``: a measured-data CSV (v1) stored as a completed run, so it can be fitted like a recorded one.
 """
 from __future__ import annotations
