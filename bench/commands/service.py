@@ -195,8 +195,9 @@ def coefficients_command(
         table.add_column("unit")
         for ch, entry in m["channels"].items():
             units = entry.get("units") or {}
+            label = f"{ch} ({entry['probe']})" if entry.get("probe") else ch
             for term, value in entry["coefficients"].items():
-                table.add_row(ch, term, f"{value:.9g}" if isinstance(value, (int, float)) else str(value),
+                table.add_row(label, term, f"{value:.9g}" if isinstance(value, (int, float)) else str(value),
                               str(units.get(term, "")))
         console.print(table)
 
