@@ -230,6 +230,11 @@ def test_tc_errors_name_the_reason():
         compile_formula("t2 + tc", cols, channel_probe="t2")
     with pytest.raises(FormulaError, match=r"'dtc': the channel's probe 't9' has no column temp_t9"):
         compile_formula("dtc", cols, channel_probe="t9")
+    with pytest.raises(FormulaError, match=r"'\(tc-t2\)' is '\(t2-t2\)' \(the channel's probe is 't2'\): "
+                                           r"identically zero"):
+        compile_formula("tc + (tc-t2)", cols, channel_probe="t2")
+    with pytest.raises(FormulaError, match=r"'\(t1-t1\)' is '\(t1-t1\)': identically zero"):
+        compile_formula("(t1-t1)", cols)
     with pytest.raises(FormulaError, match=r"a probe named 'tc'"):
         compile_formula("tc", cols + ["temp_tc"], channel_probe="t1")
     ds = own_probe_run(PROFILE[:2])
