@@ -59,10 +59,10 @@ def validate_code(code: str) -> str:
     axes = [int(np.flatnonzero(v)[0]) for v in vecs]
     if len(set(axes)) != 3:
         raise OrientationError(f"orientation code {code!r}: two body axes point along the same "
-                               f"level axis (not orthogonal: they must point along three different ENU axes)")
+                               f"level axis (not orthogonal, so not a right-handed triad: they must point along three different ENU axes)")
     if not np.allclose(np.cross(vecs[0], vecs[1]), vecs[2]):
         should = direction_letter(np.cross(vecs[0], vecs[1]))
-        raise OrientationError(f"orientation code {code!r} is not right-handed (a left-handed frame): with x={norm[0]}, "
+        raise OrientationError(f"orientation code {code!r} is not right-handed (not a right-handed triad but a left-handed frame): with x={norm[0]}, "
                                f"y={norm[1]} the z axis is {should}, so the code would be "
                                f"{norm[:2] + should!r}")
     return norm
