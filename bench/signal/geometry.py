@@ -52,8 +52,10 @@ def validate_code(code: str) -> str:
     if not isinstance(code, str):
         raise OrientationError(f"orientation code must be a string, got {code!r}")
     norm = code.strip().upper()
-    if len(norm) != 3 or any(ch not in DIRECTIONS for ch in norm):
-        raise OrientationError(f"orientation code {code!r}: need three letters from E W N S U D "
+    bad = "".join(ch for ch in norm if ch not in DIRECTIONS)
+    if len(norm) != 3 or bad:
+        letters = f" has letters {bad!r} not in EWNSUD" if bad else ""
+        raise OrientationError(f"orientation code {code!r}{letters}: need three letters from E W N S U D "
                                f"(body x, y, z directions)")
     vecs = [np.array(DIRECTIONS[ch]) for ch in norm]
     axes = [int(np.flatnonzero(v)[0]) for v in vecs]
