@@ -166,12 +166,8 @@ class SqlRunStore:
                 return
             if run.status in STORED_FINAL and stored != run.status:
                 raise InvalidTransition(f"run {rid} already ended ({run.status}); cannot become {status!r}")
-            now = utcnow()
-            run.status = stored
-            if stored == RunStatus.RUNNING.value and run.started_at is None:
-                run.started_at = now
+            queries.stamp_run_status(run, stored, utcnow())
             if stored in STORED_FINAL:
-                run.finished_at = now
                 if status != RunOutcome.COMPLETED and reason:
                     run.error = reason
                 live["outcome"] = str(status)

@@ -91,6 +91,16 @@ def list_runs(session: Session, *, status: str | Iterable[str] | None = None, li
     return list(session.scalars(stmt))
 
 
+def stamp_run_status(run: Run, new: str, now: dt.datetime) -> None:
+    """Set ``run.status`` to ``new`` (no transition check) and stamp ``started_at`` on the first
+    ``running`` and ``finished_at`` on a terminal status."""
+    run.status = new
+    if new == RunStatus.RUNNING.value and run.started_at is None:
+        run.started_at = now
+    if new in TERMINAL:
+        run.finished_at = now
+
+
 def set_run_status(session: Session, run_id: int, status: str | RunStatus, *, error: str | None = None,
                    worker: str | None = None) -> Run:
     """Move a run through the state machine ``TRANSITIONS``; stamps ``started_at`` on the first
@@ -101,11 +111,7 @@ def set_run_status(session: Session, run_id: int, status: str | RunStatus, *, er
         raise InvalidTransition(f"run {run_id}: cannot go from {run.status!r} to {new!r} "
                                 f"(allowed: {', '.join(sorted(TRANSITIONS[run.status])) or 'none, it is final'})")
     now = utcnow()
-    run.status = new
-    if new == RunStatus.RUNNING.value and run.started_at is None:
-        run.started_at = now
-    if new in TERMINAL:
-        run.finished_at = now
+    stamp_run_status(run, new, now)
     if error is not None:
         run.error = error
     if worker is not None:
