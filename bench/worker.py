@@ -35,7 +35,7 @@ import socket
 import threading
 import time
 import uuid
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 from sqlalchemy import select, update
 

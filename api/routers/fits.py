@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse
-from sqlalchemy import and_, func, select
+from sqlalchemy import and_, select
 
 from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
