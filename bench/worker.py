@@ -11,9 +11,10 @@ holds a fresh lease.  Then, in the same transaction:
 1. a run of the bench still marked active (running / paused / stopping / suspended) whose heartbeat
    is stale (its worker died) is taken over (guarded ``UPDATE ... WHERE heartbeat_at < limit``) and
    **resumed** from its checkpoint with ``Engine.resume``;
-2. else the oldest due ``queued`` run of the bench is claimed (``SELECT ... FOR UPDATE SKIP LOCKED``
-   on PostgreSQL, then ``UPDATE ... WHERE status = 'queued'``, which is the whole guard on SQLite)
-   and started with ``Engine.run``.
+2. else the next due ``queued`` run of the bench is claimed with ``queries.claim_next_run`` (scheduled
+   runs by ``start_at`` once due, then unscheduled runs in order of creation; ``SELECT ... FOR UPDATE
+   SKIP LOCKED`` on PostgreSQL, then ``UPDATE ... WHERE status = 'queued'``, which is the whole guard
+   on SQLite) and started with ``Engine.run``.
 
 While a run executes, a heartbeat thread refreshes ``runs.heartbeat_at``, the bench lease and the
 run's live progress document (``runs.live``: percent, step, remaining bench time, ETA on the wall
@@ -34,7 +35,7 @@ import socket
 import threading
 import time
 import uuid
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 from sqlalchemy import select, update
 
@@ -48,12 +49,12 @@ from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
 from bench.storage.errors import StorageError
-from bench.storage.models import Bench, Run, RunRequest, utcnow
+from bench.storage.models import Bench, Run, RunRequest, RunStatus, utcnow
 
 log = logging.getLogger(__name__)
 
-ACTIVE = ("running", "paused", "stopping", "suspended")
-TERMINAL = ("completed", "aborted", "failed")
+ACTIVE = tuple(sorted(queries.ACTIVE))
+TERMINAL = tuple(sorted(queries.TERMINAL))
 DevicesFactory = Callable[[BenchConfig], Devices]
 
 
@@ -204,19 +205,11 @@ class Worker:
                                       f"{run.worker or 'nobody'} (heartbeat stale) and resumes it",
                                       data={"previous_worker": run.worker})
                     return run.id, True
-            stmt = (select(Run.id).where(Run.bench_id == bench.id, Run.status == "queued",
-                                         (Run.start_at.is_(None)) | (Run.start_at <= now))
-                    .order_by(Run.start_at.is_not(None), Run.start_at, Run.id).limit(1))
-            if s.get_bind().dialect.name == "postgresql":
-                stmt = stmt.with_for_update(skip_locked=True)
-            run_id = s.scalars(stmt).first()
-            if run_id is None:
+            run = queries.claim_next_run(s, self.worker_id, bench_id=bench.id, now=now,
+                                         config_snapshot=_config_doc(self.config))
+            if run is None:
                 return None
-            got = s.execute(_update(Run).where(Run.id == run_id, Run.status == "queued")
-                            .values(status="running", worker=self.worker_id, heartbeat_at=now, started_at=now,
-                                    config_snapshot=_config_doc(self.config))).rowcount
-            if got != 1:
-                return None
+            run_id = run.id
             queries.add_event(s, run_id, "worker_claimed", f"worker {self.worker_id} claimed run {run_id}")
             return run_id, False
 
@@ -244,7 +237,7 @@ class Worker:
         beat = threading.Thread(target=self._heartbeat_loop, args=(run_id, stop_beat), daemon=True,
                                 name=f"heartbeat-run{run_id}")
         devices = None
-        status = "failed"
+        status = RunStatus.FAILED.value
         try:
             devices = self.devices_factory(self.config)
             control = DbControl(self.db, run_id, publish=lambda: self._publish_progress(run_id),
@@ -260,7 +253,7 @@ class Worker:
                 plan = module.build(module.Params.model_validate(params))
                 status = engine.run(str(run_id), plan)
         except BenchError as exc:     # before the engine took over (devices, plan): the run fails here
-            status = "failed"
+            status = RunStatus.FAILED.value
             self._fail(run_id, f"{type(exc).__name__}: {exc}")
         except Exception as exc:      # noqa: BLE001 - the worker must outlive one run's internal error
             log.exception("run %s ended by an internal error", run_id)
@@ -285,7 +278,7 @@ class Worker:
         with self.db.session() as s:
             run = queries.get_run(s, run_id, for_update=True)
             if run.status not in TERMINAL:
-                run.status, run.finished_at, run.error = "failed", utcnow(), reason
+                run.status, run.finished_at, run.error = RunStatus.FAILED.value, utcnow(), reason
                 queries.add_event(s, run_id, "run_failed", reason)
 
     # ---- heartbeat ----------------------------------------------------------------------------

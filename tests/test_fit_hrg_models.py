@@ -47,7 +47,7 @@ def test_reverse_fit_reproduces_table2_gx():
     T4 = rc.evaluate(t2["freq_hz"])
     assert np.abs(T4 - t2["t2_c"]).max() <= 0.03
     assert np.abs(T4 - t2["t4_c"]).max() <= 0.03          # the paper's T4 column
-    assert abs(rc.evaluate(rc.centre_hz + rc.scale_hz) - t2["t2_c"].max()) < 0.03
+    assert abs(rc.evaluate(rc.centre + rc.scale) - t2["t2_c"].max()) < 0.03
 
 
 def test_reverse_adapter_on_table1_all_gyros():

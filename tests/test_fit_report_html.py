@@ -49,3 +49,22 @@ def test_helpers_return_snippets():
     assert plot_adev({"a": np.random.default_rng(0).normal(size=2048)}, 1.0).startswith("<img")
     table = html_table(["a<b"], [["<x>"]])
     assert "&lt;x&gt;" in table and "a&lt;b" in table
+
+
+def test_residual_plots_use_the_rate_each_model_fitted():
+    """The dT/dt axis of "residual vs dT/dt" is the model's own regressor: its rate method and window."""
+    from bench.fit.models import fit_model
+    from bench.fit.report import _rate_regressor
+
+    train = startup_runs(23, rho_100s=0.5, sd=0.005, starts=(-20, 20))
+    fog = fit_fog_stepwise(train, "x", probe="t1", average_s=60.0)
+    assert fog.definition["rate_method"] == "savgol2" and fog.definition["rate_window_s"] == 60.0
+    assert _rate_regressor(fog) == ("savgol2", 60.0)
+    linear = fit_model("t1 + dt1", train, "x", rate_window_s=300.0)
+    assert linear.definition["rate_method"] == "centred_slope"
+    assert _rate_regressor(linear) == ("centred_slope", 300.0)
+    # a result stored before the keys existed: the linear models' rate_filter window, centred slope
+    old = dict(linear.definition)
+    del old["rate_method"], old["rate_window_s"]
+    linear.definition = old
+    assert _rate_regressor(linear) == ("centred_slope", 300.0)

@@ -6,7 +6,7 @@ import datetime as dt
 import pytest
 
 from bench.storage import InvalidTransition, StorageError, UnknownRun, queries
-from bench.storage.models import Fit, Run
+from bench.storage.models import Fit, Run, RunStatus
 from tests.test_storage_support import db, run_id  # noqa: F401 - fixtures
 
 
@@ -49,6 +49,35 @@ def test_claim_next_run_respects_start_at_and_order(db):
         with pytest.raises(StorageError, match="not owned"):
             queries.heartbeat(s, first, "worker-B")
         assert first in [r.id for r in queries.stale_runs(s, dt.timedelta(seconds=-1))]
+
+
+
+def test_claim_next_run_serves_one_bench_scheduled_first_then_queued_in_creation_order(db):
+    """The worker's claim: scheduled runs by start_at once due, then unscheduled ones by creation,
+    never another bench's run; the extra values (the worker's config snapshot) are stored."""
+    now = dt.datetime(2031, 1, 1, tzinfo=dt.timezone.utc)
+    with db.session() as s:
+        for r in queries.list_runs(s, status="queued"):
+            queries.set_run_status(s, r.id, "aborted")
+        other = queries.create_run(s, procedure="other", bench_name="bench-B",
+                                   start_at=now - dt.timedelta(hours=3)).id
+        queued_1 = queries.create_run(s, procedure="q1", bench_name="bench-A").id
+        queued_2 = queries.create_run(s, procedure="q2", bench_name="bench-A").id
+        due_late = queries.create_run(s, procedure="d2", bench_name="bench-A", start_at=now - dt.timedelta(minutes=5)).id
+        due_early = queries.create_run(s, procedure="d1", bench_name="bench-A", start_at=now - dt.timedelta(hours=1)).id
+        future = queries.create_run(s, procedure="f", bench_name="bench-A", start_at=now + dt.timedelta(hours=1)).id
+        bench_a = queries.ensure_bench(s, "bench-A").id
+    order = []
+    for _ in range(5):
+        with db.session() as s:
+            run = queries.claim_next_run(s, "w", bench_id=bench_a, now=now, config_snapshot={"x": 1})
+            order.append(run.id if run is not None else None)
+            if run is not None:
+                assert run.status == RunStatus.RUNNING.value and run.config_snapshot == {"x": 1}
+    assert order == [due_early, due_late, queued_1, queued_2, None]
+    with db.session() as s:
+        assert queries.get_run(s, future).status == RunStatus.QUEUED.value
+        assert queries.get_run(s, other).status == RunStatus.QUEUED.value
 
 
 def test_checkpoint_steps_events_segments_suspensions(db, run_id):

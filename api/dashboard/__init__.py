@@ -64,44 +64,24 @@ def ui_root() -> RedirectResponse:
     return RedirectResponse("/ui/", status_code=307)
 
 
-@router.get("/")
-def overview_page() -> HTMLResponse:
-    return _page("overview")
+def _page_route(page: str, with_id: bool):
+    """GET handler of a page; ``with_id``: the path ends in an integer id (422 when it is not one)."""
+    if with_id:
+        def page_with_id(item_id: int) -> HTMLResponse:
+            return _page(page)
+        return page_with_id
+
+    def page_plain() -> HTMLResponse:
+        return _page(page)
+    return page_plain
 
 
-@router.get("/start")
-def start_page() -> HTMLResponse:
-    return _page("start")
-
-
-@router.get("/runs/{run_id}")
-def run_page(run_id: int) -> HTMLResponse:
-    return _page("run")
-
-
-@router.get("/gyros")
-def gyro_lookup_page() -> HTMLResponse:
-    return _page("gyro")
-
-
-@router.get("/gyros/{gyro_id}")
-def gyro_page(gyro_id: str) -> HTMLResponse:
-    return _page("gyro")
-
-
-@router.get("/fits/{fit_id}")
-def fit_page(fit_id: int) -> HTMLResponse:
-    return _page("fit")
-
-
-@router.get("/close-loop")
-def close_loop_form_page() -> HTMLResponse:
-    return _page("closeloop")
-
-
-@router.get("/close-loop/{analysis_id}")
-def close_loop_page(analysis_id: int) -> HTMLResponse:
-    return _page("closeloop")
+# path -> (page script, path ends in an integer id)
+_ROUTES = {"/": ("overview", False), "/start": ("start", False), "/runs/{item_id}": ("run", True),
+         "/gyros": ("gyro", False), "/gyros/{gyro_id}": ("gyro", False), "/fits/{item_id}": ("fit", True),
+         "/close-loop": ("closeloop", False), "/close-loop/{item_id}": ("closeloop", True)}
+for _path, (_name, _with_id) in _ROUTES.items():
+    router.add_api_route(_path, _page_route(_name, _with_id), methods=["GET"], response_class=HTMLResponse)
 
 
 def static_files() -> dict[str, Path]:

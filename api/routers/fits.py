@@ -188,7 +188,7 @@ def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depen
 def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     """Fit ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
     ``validation_run_ids`` too) and store it as the next version of the model for the gyro."""
-    from bench.commands.fitting import fit_channels
+    from bench.fit.channels import fit_channels
 
     if body.accept and not who.allows("admin"):
         raise Problem(403, "Not allowed", "accepting a fit as the gyro's coefficients needs the admin role")

@@ -135,24 +135,25 @@ def _request(db: Database, run_id: int, command: str, who: Principal) -> JSONRes
                              "detail": "the bench worker applies the request at its next tick"}, status_code=202)
 
 
-@router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)")
-def stop_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
-    return _request(db, run_id, "stop", who)
+_CONTROL_SUMMARIES = {
+    "stop": "Stop: finish the current recording, then safe state (cancels a queued run)",
+    "abort": "Abort: safe state now (cancels a queued run)",
+    "pause": "Pause a running run (its step clock stops)",
+    "resume": "Resume a paused run",
+}
 
 
-@router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)")
-def abort_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
-    return _request(db, run_id, "abort", who)
+def _control_route(command: str):
+    def control(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+        return _request(db, run_id, command, who)
+
+    control.__name__ = f"{command}_run"
+    return control
 
 
-@router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)")
-def pause_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
-    return _request(db, run_id, "pause", who)
-
-
-@router.post("/{run_id}/resume", summary="Resume a paused run")
-def resume_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
-    return _request(db, run_id, "resume", who)
+for _command, _summary in _CONTROL_SUMMARIES.items():
+    router.add_api_route(f"/{{run_id}}/{_command}", _control_route(_command), methods=["POST"], summary=_summary,
+                         name=f"{_command}_run")
 
 
 # ------------------------------------------------------------------------------------------ data

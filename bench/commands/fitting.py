@@ -4,7 +4,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Optional
 
-import numpy as np
 import typer
 
 from bench.commands.common import clean_floats, guarded, load_dataset, write_json
@@ -13,43 +12,6 @@ from bench.commands.common import clean_floats, guarded, load_dataset, write_jso
 def register(app: typer.Typer) -> None:
     app.command("fit")(fit_command)
     app.command("close-loop")(close_loop_command)
-
-
-def _metrics(values: np.ndarray, target: np.ndarray, time_s: np.ndarray, flagged: np.ndarray) -> dict[str, Any]:
-    from bench.fit.metrics import bias_stability
-
-    resid = np.asarray(target, float) - np.asarray(values, float)
-    ok = np.isfinite(resid)
-    return {"rms_dph": float(np.sqrt(np.mean(resid[ok] ** 2))) if ok.any() else None,
-            "std100_dph": bias_stability(time_s, np.where(ok, resid, np.nan), 100.0),
-            "n": int(ok.sum()), "flagged_fraction": float(np.mean(flagged)) if len(flagged) else 0.0}
-
-
-def fit_channels(model: str, train, validate, channels: list[str], opts: dict[str, Any]) -> tuple[dict, list]:
-    """Fit ``model`` per channel; returns the CLI/API JSON document and the FitResults."""
-    from bench.fit.catalog import fit_model, predict, target_of
-
-    doc: dict[str, Any] = {"model": model, "channels": {}}
-    results = []
-    for ch in channels:
-        result = fit_model(model, train, ch, **opts)
-        results.append(result)
-        entry: dict[str, Any] = {"model": result.model, "coefficients": result.coefficients, "units": result.units,
-                                 "validity": result.validity, "definition": result.definition,
-                                 "stats": result.stats}
-        for label, data in (("train", train), ("validation", validate)):
-            if data is None:
-                continue
-            values, flagged = predict(result, data)
-            target = target_of(result, data)
-            entry[label] = _metrics(values, target, data.time, flagged)
-            if result.model == "hrg_reverse":
-                err = np.abs(np.asarray(values) - target)
-                entry[label]["max_abs_error_c"] = float(np.nanmax(err))
-        if result.model == "hrg_reverse":
-            entry["max_abs_error_c"] = entry["train"]["max_abs_error_c"]
-        doc["channels"][ch] = entry
-    return clean_floats(doc), results
 
 
 @guarded
@@ -65,6 +27,7 @@ def fit_command(
 ) -> None:
     """Fit a temperature model and report its error on the training and validation data."""
     from bench.fit.catalog import predict
+    from bench.fit.channels import fit_channels
 
     train_ds = load_dataset(train)
     val_ds = load_dataset(validate) if validate else None

@@ -84,7 +84,6 @@ EDIT_CREATE, EDIT_INSERT, EDIT_DELETE_PROFILE, EDIT_START = 1, 2, 3, 5
 STEP_RAMP_RATE, STEP_END = 2, 5
 END_HOLD = 0
 MODES_PROFILE = (2, 3)
-F4_MODEL = 5270
 
 _EXC_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
               4: "slave device failure", 6: "slave device busy"}

@@ -37,17 +37,21 @@ import serial
 from bench.clock import Clock
 from bench.config import GyroConfig
 from bench.devices.kvh import ALLOWED_DATA_RATES, FrameDecoder
+from bench.background import BackgroundLoop
 from bench.errors import DeviceTimeout, LinkDown, ProtocolError
 from bench.interfaces import GyroFrame, LinkStats
 
 _ERROR_REPLY = re.compile(rb"ERROR,([^\r\n]*)\r\n")
 
 
-class GyroSerialLink:
+class GyroSerialLink(BackgroundLoop):
     """``GyroLink`` over a pyserial URL.  ``start()`` raises ``LinkDown`` if the port cannot be opened."""
+
+    thread_name = "gyro-link"
 
     def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float | None = None,
                  queue_limit: int = 2_000_000, read_timeout_s: float = 0.01) -> None:
+        super().__init__()
         self.config = config
         self.clock = clock
         self.stats = LinkStats()
@@ -61,35 +65,17 @@ class GyroSerialLink:
         self._port: serial.SerialBase | None = None
         self._port_lock = threading.Lock()
         self._write_lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._reply_buf = bytearray()
         self._reply_lock = threading.Lock()
         self._capturing_replies = False
         self.last_error: str | None = None
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self) -> None:
-        if self._thread is not None:
-            return
+    def _before_start(self) -> None:
         self._port = self._open()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="gyro-link", daemon=True)
-        self._thread.start()
 
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+    def _after_stop(self) -> None:
         self._close_port()
-
-    def __enter__(self) -> "GyroSerialLink":
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     @property
     def connected(self) -> bool:

@@ -174,14 +174,19 @@ class AcutrolTurntable:
             raise ProtocolError(f"turntable at {self.config.url}: expected 'position;rate', got {reply!r}")
         return AxisState(self._number(parts[0], f"axis {a} position"), self._number(parts[1], f"axis {a} rate"))
 
+    def _demand(self, axis: int, mode: str, value: float) -> int:
+        """Put ``axis`` in ``mode`` ("Position" deg / "Rate" deg/s) with demand ``value``; the axis number."""
+        a = self._axis(axis)
+        text = self._value(value, mode.lower())
+        self._ensure_configured(a)
+        self.command(f":Mode:{mode} {a}")
+        self.command(f":Demand:{mode} {a},{text}")
+        return a
+
     def move_to(self, axis: int, position_deg: float, *, wait: bool = True,
                 timeout_s: float | None = None) -> AxisState:
         """Position mode to ``position_deg``; by default wait until within tolerance and at rest."""
-        a = self._axis(axis)
-        value = self._value(position_deg, "position")
-        self._ensure_configured(a)
-        self.command(f":Mode:Position {a}")
-        self.command(f":Demand:Position {a},{value}")
+        a = self._demand(axis, "Position", position_deg)
         if not wait:
             return self.read(a)
         if timeout_s is None:
@@ -193,11 +198,7 @@ class AcutrolTurntable:
     def rate(self, axis: int, rate_dps: float, *, wait: bool = False, tolerance_dps: float = 0.01,
              timeout_s: float | None = None) -> AxisState | None:
         """Rate mode at ``rate_dps``; with ``wait`` block until the rate is reached."""
-        a = self._axis(axis)
-        value = self._value(rate_dps, "rate")
-        self._ensure_configured(a)
-        self.command(f":Mode:Rate {a}")
-        self.command(f":Demand:Rate {a},{value}")
+        a = self._demand(axis, "Rate", rate_dps)
         if not wait:
             return None
         if timeout_s is None:

@@ -38,6 +38,7 @@ from bench.engine.devices import Devices
 from bench.engine.executors import EXECUTORS, StepExecutor, StepFailed
 from bench.engine.monitor import Acquisition
 from bench.engine.orientation import solve_angles
+from bench.engine.outcomes import RunOutcome, StepOutcome
 from bench.engine.planning import plan_summary, step_estimates, validate_plan
 from bench.engine.safe import enter_safe_state, move_table_and_wait
 from bench.engine.steps import Fit, Plan, Ramp
@@ -71,7 +72,7 @@ class HardwareState:
 class RunEnded(Exception):
     """Internal: the run leaves the step loop with ``status`` for ``reason``."""
 
-    def __init__(self, status: str, reason: str) -> None:
+    def __init__(self, status: RunOutcome, reason: str) -> None:
         super().__init__(reason)
         self.status = status
         self.reason = reason
@@ -232,12 +233,12 @@ class Engine:
         except RunEnded as end:
             self._end(end.status, end.reason)
         except (BenchError, DeviceError) as exc:
-            self._end("failed", f"{type(exc).__name__}: {exc}")
+            self._end(RunOutcome.FAILED, f"{type(exc).__name__}: {exc}")
         except KeyboardInterrupt:
-            self._end("aborted", "interrupted (KeyboardInterrupt)")
+            self._end(RunOutcome.ABORTED, "interrupted (KeyboardInterrupt)")
             raise
         except Exception as exc:
-            self._end("failed", f"internal error {type(exc).__name__}: {exc}")
+            self._end(RunOutcome.FAILED, f"internal error {type(exc).__name__}: {exc}")
             raise
         return self.status
 
@@ -246,10 +247,10 @@ class Engine:
         for index in range(start_index, len(self.plan.steps)):
             self._run_step(index, step_state if index == start_index else None)
             if self.stop_requested:
-                raise RunEnded("stopped", "stop requested")
+                raise RunEnded(RunOutcome.STOPPED, "stop requested")
         self.current = None
         self.current_index = len(self.plan.steps)
-        self._end("completed", None)
+        self._end(RunOutcome.COMPLETED, None)
 
     def _run_step(self, index: int, state: dict[str, Any] | None) -> None:
         assert self.plan is not None
@@ -257,7 +258,7 @@ class Engine:
         now = self.clock.now()
         ex = EXECUTORS[step.kind](self, index, step, self.estimates[index], state)
         self.current, self.current_index = ex, index
-        self.store.set_step_status(self.run_id, index, step.kind, "running", now,
+        self.store.set_step_status(self.run_id, index, step.kind, StepOutcome.RUNNING, now,
                                    {"describe": step.describe(), "resumed": state is not None})
         ex.start(now)
         last = now
@@ -274,13 +275,13 @@ class Engine:
                 break
             if self.stop_requested and (not ex.records or held):
                 ex.finish(now, complete=False)
-                self.store.set_step_status(self.run_id, index, step.kind, "stopped", now)
-                raise RunEnded("stopped", "stop requested")
+                self.store.set_step_status(self.run_id, index, step.kind, StepOutcome.STOPPED, now)
+                raise RunEnded(RunOutcome.STOPPED, "stop requested")
             if now >= self.next_checkpoint:
                 self._checkpoint(now, index, ex.state(now))
             self._sleep(now, ex)
         ex.finish(now, complete=True)
-        status = "failed" if ex.failed_reason else "done"
+        status = StepOutcome.FAILED if ex.failed_reason else StepOutcome.DONE
         self.store.set_step_status(self.run_id, index, step.kind, status, now,
                                    {"error": ex.failed_reason} if ex.failed_reason else None)
         self.current_index = index + 1
@@ -310,7 +311,7 @@ class Engine:
             return
         self.log("info", f"control_{command}", f"operator requested {command}")
         if command == "abort":
-            raise RunEnded("aborted", "abort requested")
+            raise RunEnded(RunOutcome.ABORTED, "abort requested")
         if command == "stop":
             self.stop_requested = True
             if self.status == "running":
@@ -358,7 +359,7 @@ class Engine:
             return
         total = self.suspended_total(now)
         if total > self.cfg.suspension_cap_s:
-            raise RunEnded("aborted", f"suspended for a total of {total:.0f} s, over the cap of "
+            raise RunEnded(RunOutcome.ABORTED, f"suspended for a total of {total:.0f} s, over the cap of "
                                       f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension['reason']}")
 
     def suspended_total(self, now: float) -> float:
@@ -386,13 +387,12 @@ class Engine:
         })
         self.next_checkpoint = now + self.cfg.checkpoint_period_s
 
-    def _end(self, status: str, reason: str | None) -> None:
+    def _end(self, status: RunOutcome, reason: str | None) -> None:
         now = self.clock.now()
         ex = self.current
         if ex is not None:
             ex.finish(now, complete=False)
-            self.store.set_step_status(self.run_id, ex.index, ex.step.kind,
-                                       "stopped" if status == "stopped" else "aborted" if status == "aborted" else "failed",
+            self.store.set_step_status(self.run_id, ex.index, ex.step.kind, StepOutcome.ending_run(status),
                                        now, {"reason": reason})
             self.current = None
         if self.suspension is not None:
@@ -403,8 +403,8 @@ class Engine:
             self.acq.flush(now)
         except Exception as exc:  # noqa: BLE001 - still reach the safe state
             self.log("error", "flush_failed", f"could not store the last frames: {exc}")
-        if status != "completed":
-            self.log("warning" if status == "stopped" else "error", f"run_{status}", f"run {status}: {reason}")
+        if status != RunOutcome.COMPLETED:
+            self.log("warning" if status == RunOutcome.STOPPED else "error", f"run_{status}", f"run {status}: {reason}")
         safe_ok = enter_safe_state(self.devices, self.clock, self.config, self.hw.chamber_ramp is not None, self.log)
         self.hw.chamber_ramp = None
         try:

@@ -40,16 +40,15 @@ from typing import Any, Sequence
 from sqlalchemy import select, update
 
 from bench.config import TurntableGeometry
+from bench.engine.outcomes import RunOutcome, StepOutcome
 from bench.engine.store import PsuReading
 from bench.interfaces import AxisState, ChamberStatus, GyroFrame, ProbeReading
 from bench.storage import FrameWriter, queries
 from bench.storage.db import Database
 from bench.storage.errors import InvalidTransition, StorageError, UnknownRun
-from bench.storage.models import FrameCursor, Run, Step, Suspension, utcnow
+from bench.storage.models import FrameCursor, Run, RunStatus, Step, Suspension, utcnow
 
-ENGINE_FINAL = ("completed", "stopped", "aborted", "failed")
-STORED_FINAL = ("completed", "aborted", "failed")
-ACTIVE = ("running", "paused", "stopping", "suspended")
+STORED_FINAL = tuple(sorted(queries.TERMINAL))
 SEGMENT_KIND = {"record": "record", "soak": "soak", "ramp": "ramp", "wait_stable": "settle",
                 "orient": "move", "table_rate": "record"}
 AT_REST_DPS = 0.1
@@ -139,7 +138,7 @@ class SqlRunStore:
             run = queries.get_run(s, rid, for_update=True)
             if run.checkpoint is not None:
                 raise StorageError(f"run {rid} has already started (status {run.status}); resume it instead")
-            if run.status not in ("queued", "running"):
+            if run.status not in (RunStatus.QUEUED.value, RunStatus.RUNNING.value):
                 raise InvalidTransition(f"run {rid} is {run.status!r}; only a queued run can start")
             live = dict(run.live or {})
             live.update(plan=plan, summary=summary, started_t=t)
@@ -159,7 +158,7 @@ class SqlRunStore:
 
     def set_run_status(self, run_id: str, status: str, t: float, reason: str | None = None) -> None:
         rid = run_key(run_id)
-        stored = "completed" if status == "stopped" else status
+        stored = RunStatus.COMPLETED.value if status == RunOutcome.STOPPED else str(status)
         with self.db.session() as s:
             run = queries.get_run(s, rid, for_update=True)
             live = dict(run.live or {})
@@ -167,16 +166,12 @@ class SqlRunStore:
                 return
             if run.status in STORED_FINAL and stored != run.status:
                 raise InvalidTransition(f"run {rid} already ended ({run.status}); cannot become {status!r}")
-            now = utcnow()
-            run.status = stored
-            if stored == "running" and run.started_at is None:
-                run.started_at = now
+            queries.stamp_run_status(run, stored, utcnow())
             if stored in STORED_FINAL:
-                run.finished_at = now
-                if status != "completed" and reason:
+                if status != RunOutcome.COMPLETED and reason:
                     run.error = reason
-                live["outcome"] = status
-            live.update(engine_status=status, status_t=t, status_reason=reason)
+                live["outcome"] = str(status)
+            live.update(engine_status=str(status), status_t=t, status_reason=reason)
             run.live = jsonable(live)
 
     def heartbeat(self, run_id: str | int, owner: str, progress: dict[str, Any] | None = None) -> None:
@@ -208,8 +203,8 @@ class SqlRunStore:
             step = s.scalars(select(Step).where(Step.run_id == rid, Step.index == index)).first()
             if step is None:
                 raise StorageError(f"run {rid} has no step {index} ({kind})")
-            step.status = status
-            if status == "running":
+            step.status = str(status)
+            if status == StepOutcome.RUNNING:
                 step.started_t = t
                 step.finished_t = None
             else:
@@ -350,7 +345,7 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "finished_at": run.finished_at.isoformat() if run.finished_at else None,
             "worker": run.worker,
             "sim": live.get("sim"),
-            "steps_done": sum(1 for st in steps if st.status == "done"),
+            "steps_done": sum(1 for st in steps if st.status == StepOutcome.DONE),
         }
     return jsonable(doc)
 

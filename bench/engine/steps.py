@@ -147,8 +147,6 @@ Step = Annotated[
     Field(discriminator="kind"),
 ]
 
-RECORDING_KINDS = ("record", "soak", "ramp", "wait_stable")
-
 
 def step_labels(step: Any) -> Labels | None:
     """Segment labels of a step, or None when the step does not record."""

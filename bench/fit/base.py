@@ -18,48 +18,11 @@ import re
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-import numpy as np
 
+from bench.dataset import Dataset  # noqa: F401  (re-exported: the fitting module's input)
 from bench.errors import DataFormatError
 from bench.jsonsafe import jsonable
-
-EARTH_RATE_DPH = 7.2921158553e-5 * 180.0 / 3.141592653589793 * 3600.0  # WGS-84 Omega_ie, deg/h
-
-
-@dataclass
-class Dataset:
-    columns: dict[str, np.ndarray]
-    meta: dict[str, Any] = field(default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.columns["time_s"]) if "time_s" in self.columns else 0
-
-    def __getitem__(self, name: str) -> np.ndarray:
-        try:
-            return self.columns[name]
-        except KeyError:
-            raise KeyError(f"column {name!r} not in data (have: {', '.join(sorted(self.columns))})") from None
-
-    def __contains__(self, name: str) -> bool:
-        return name in self.columns
-
-    @property
-    def time(self) -> np.ndarray:
-        return self.columns["time_s"]
-
-    def gyro_channels(self) -> list[str]:
-        return [c[len("gyro_"):] for c in self.columns if c.startswith("gyro_")]
-
-    def temp_names(self) -> list[str]:
-        return [c[len("temp_"):] for c in self.columns if c.startswith("temp_")]
-
-    def select(self, mask: np.ndarray) -> "Dataset":
-        return Dataset({k: v[mask] for k, v in self.columns.items()}, dict(self.meta))
-
-    def with_columns(self, **cols: np.ndarray) -> "Dataset":
-        merged = dict(self.columns)
-        merged.update(cols)
-        return Dataset(merged, dict(self.meta))
+from bench.signal.geometry import EARTH_RATE_DPH  # noqa: F401  (re-exported; defined in bench.signal)
 
 
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")

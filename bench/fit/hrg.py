@@ -40,15 +40,14 @@ from bench.errors import DataFormatError
 from bench.fit import pso
 from bench.fit.base import Dataset, FitResult, channel_probe
 from bench.fit.fog import (
+    RATE_METHOD,
     _column,
     apply_mode,
-    block_average,
     per_sample_thermal,
     pick_temperature_column,
-    run_segments,
-    smoothed_and_rate,
     thermal_validity,
 )
+from bench.signal import block_means, run_segments, temperature_rate
 
 # --------------------------------------------------------------------------------------------
 # Frequency <-> temperature cubics
@@ -76,23 +75,28 @@ def _fit_cubic(x: np.ndarray, y: np.ndarray, what: str) -> tuple[float, float, n
 
 
 @dataclass(frozen=True)
-class ReverseCubic:
-    """T(f) = a0 + a1 u + a2 u^2 + a3 u^3, u = (f - centre_hz) / scale_hz."""
+class ScaledCubic:
+    """y(x) = c0 + c1 u + c2 u^2 + c3 u^3, u = (x - centre) / scale, calibrated for lo <= x <= hi."""
 
-    centre_hz: float
-    scale_hz: float
+    centre: float
+    scale: float
     coeffs: tuple[float, float, float, float]
-    fmin_hz: float
-    fmax_hz: float
+    lo: float
+    hi: float
 
-    def evaluate(self, freq_hz: np.ndarray) -> np.ndarray:
-        u = (np.asarray(freq_hz, float) - self.centre_hz) / self.scale_hz
+    def evaluate(self, x: np.ndarray) -> np.ndarray:
+        u = (np.asarray(x, float) - self.centre) / self.scale
         return np.polynomial.polynomial.polyval(u, self.coeffs)
 
-    def evaluate_clipped(self, freq_hz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        f = np.asarray(freq_hz, float)
-        fc = np.clip(f, self.fmin_hz, self.fmax_hz)
+    def evaluate_clipped(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Values with x clipped to [lo, hi], and where it was clipped."""
+        f = np.asarray(x, float)
+        fc = np.clip(f, self.lo, self.hi)
         return self.evaluate(fc), fc != f
+
+
+class ReverseCubic(ScaledCubic):
+    """T(f) in C of the resonance frequency f in Hz (centre, scale, lo, hi in Hz)."""
 
 
 def fit_reverse_cubic(freq_hz: np.ndarray, temp_c: np.ndarray) -> ReverseCubic:
@@ -101,24 +105,13 @@ def fit_reverse_cubic(freq_hz: np.ndarray, temp_c: np.ndarray) -> ReverseCubic:
     return ReverseCubic(centre, scale, tuple(float(c) for c in coef), float(f.min()), float(f.max()))
 
 
-@dataclass(frozen=True)
-class ForwardCubic:
-    """f(T) = b0 + b1 v + b2 v^2 + b3 v^3, v = (T - centre_c) / scale_c."""
-
-    centre_c: float
-    scale_c: float
-    coeffs: tuple[float, float, float, float]
-    tmin_c: float
-    tmax_c: float
-
-    def evaluate(self, temp_c: np.ndarray) -> np.ndarray:
-        v = (np.asarray(temp_c, float) - self.centre_c) / self.scale_c
-        return np.polynomial.polynomial.polyval(v, self.coeffs)
+class ForwardCubic(ScaledCubic):
+    """f(T) in Hz of the temperature T in C (centre, scale, lo, hi in C)."""
 
     def raw_coefficients(self) -> dict[str, float]:
         """Expansion in raw T: f = c3 T^3 + c2 T^2 + c1 T + c0 (the paper's eq-2 form)."""
-        shifted = np.polynomial.Polynomial(self.coeffs)(np.polynomial.Polynomial([-self.centre_c / self.scale_c,
-                                                                                  1.0 / self.scale_c]))
+        shifted = np.polynomial.Polynomial(self.coeffs)(np.polynomial.Polynomial([-self.centre / self.scale,
+                                                                                  1.0 / self.scale]))
         c = np.zeros(4)
         c[: shifted.coef.size] = shifted.coef
         return {"c0": float(c[0]), "c1": float(c[1]), "c2": float(c[2]), "c3": float(c[3])}
@@ -133,7 +126,7 @@ class ForwardCubic:
             real = roots[np.abs(roots.imag) <= 1e-9 * max(1.0, np.abs(roots).max())].real
             if real.size == 0:
                 raise DataFormatError(f"HRG forward cubic: no real temperature for f = {f} Hz")
-            out[i] = self.centre_c + self.scale_c * real[np.argmin(np.abs(real))]
+            out[i] = self.centre + self.scale * real[np.argmin(np.abs(real))]
         return out.reshape(np.shape(freq_hz))
 
 
@@ -249,8 +242,8 @@ def _reverse_from_definition(d: dict[str, Any]) -> ReverseCubic:
 
 
 def _reverse_definition(rc: ReverseCubic, freq_column: str) -> dict[str, Any]:
-    return {"kind": "reverse_cubic", "freq_column": freq_column, "f_centre_hz": rc.centre_hz,
-            "f_scale_hz": rc.scale_hz, "coefficients": list(rc.coeffs), "fmin_hz": rc.fmin_hz, "fmax_hz": rc.fmax_hz,
+    return {"kind": "reverse_cubic", "freq_column": freq_column, "f_centre_hz": rc.centre,
+            "f_scale_hz": rc.scale, "coefficients": list(rc.coeffs), "fmin_hz": rc.lo, "fmax_hz": rc.hi,
             "formula": "T = a0 + a1 u + a2 u^2 + a3 u^3, u = (f - f_centre_hz) / f_scale_hz"}
 
 
@@ -258,7 +251,7 @@ def _averaged_pair(dataset: Dataset, x: np.ndarray, y: np.ndarray, average_s: fl
     if "time_s" not in dataset or average_s <= 0:
         return x, y
     t = np.asarray(dataset["time_s"], float)
-    _, cols, _ = block_average(t, {"x": x, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
+    cols = block_means(t, {"x": x, "y": y}, average_s, run_segments(t, dataset.columns.get("run"))).columns
     return cols["x"], cols["y"]
 
 
@@ -273,17 +266,23 @@ def _reference_probe(dataset: Dataset, channel: str, opts: dict[str, Any], *keys
     return None
 
 
-def fit_hrg_reverse(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
-    """T(freq_<ch>) against the reference probe (``reference``/``probe``: e.g. "t2").
-    Option average_s (default 100; 0 = use every sample)."""
-    where = f"hrg_reverse freq_{channel}"
+def _frequency_and_reference(dataset: Dataset, channel: str, opts: dict[str, Any], model: str):
+    """(where, freq column, reference temperature column, averaged f (Hz), averaged T (C))."""
+    where = f"{model} freq_{channel}"
     fcol = f"freq_{channel}"
     tcol = pick_temperature_column(dataset, _reference_probe(dataset, channel, opts, "reference", "probe"), where)
     f, T = _averaged_pair(dataset, _column(dataset, fcol, where), _column(dataset, tcol, where),
                           float(opts.get("average_s", 100.0)))
+    return where, fcol, tcol, f, T
+
+
+def fit_hrg_reverse(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
+    """T(freq_<ch>) against the reference probe (``reference``/``probe``: e.g. "t2").
+    Option average_s (default 100; 0 = use every sample)."""
+    where, fcol, tcol, f, T = _frequency_and_reference(dataset, channel, opts, "hrg_reverse")
     rc = fit_reverse_cubic(f, T)
     f_raw = dataset[fcol]       # range of the raw samples, so noisy plateau samples are not flagged
-    rc = ReverseCubic(rc.centre_hz, rc.scale_hz, rc.coeffs, float(min(f.min(), f_raw.min())),
+    rc = ReverseCubic(rc.centre, rc.scale, rc.coeffs, float(min(f.min(), f_raw.min())),
                       float(max(f.max(), f_raw.max())))
     err = rc.evaluate(f) - T
     _, _, _, cond = _fit_cubic(f, T, where)
@@ -295,7 +294,7 @@ def fit_hrg_reverse(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
                     "average_s": float(opts.get("average_s", 100.0))},
         coefficients={f"a{i}": float(c) for i, c in enumerate(rc.coeffs)},
         units={f"a{i}": "C" for i in range(4)} | {"f_centre_hz": "Hz", "f_scale_hz": "Hz"},
-        validity={"fmin_hz": rc.fmin_hz, "fmax_hz": rc.fmax_hz, "tmin_c": float(T.min()), "tmax_c": float(T.max())},
+        validity={"fmin_hz": rc.lo, "fmax_hz": rc.hi, "tmin_c": float(T.min()), "tmax_c": float(T.max())},
         stats={"n": int(T.size), "rms_c": float(np.sqrt(np.mean(err ** 2))), "max_abs_error_c": float(np.abs(err).max()),
                "cond": cond, "forward_raw_coefficients": fwd.raw_coefficients(),
                "forward_max_abs_error_c": float(np.abs(fwd.solve(f) - T).max())},
@@ -312,22 +311,18 @@ def predict_hrg_reverse(result: FitResult, dataset: Dataset, **opts: Any) -> tup
 def fit_hrg_forward(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
     """f(T) of eq 2 against the reference probe; coefficients in the paper's raw-T basis (c0..c3)
     plus the centred/scaled ones in the definition."""
-    where = f"hrg_forward freq_{channel}"
-    fcol = f"freq_{channel}"
-    tcol = pick_temperature_column(dataset, _reference_probe(dataset, channel, opts, "reference", "probe"), where)
-    f, T = _averaged_pair(dataset, _column(dataset, fcol, where), _column(dataset, tcol, where),
-                          float(opts.get("average_s", 100.0)))
+    where, fcol, tcol, f, T = _frequency_and_reference(dataset, channel, opts, "hrg_forward")
     fc = fit_forward_cubic(T, f)
     err = fc.evaluate(T) - f
     return FitResult(
         model="hrg_forward", channel=channel, target=fcol,
         definition={"formula": "f = c3 T^3 + c2 T^2 + c1 T + c0 (= b0 + b1 v + b2 v^2 + b3 v^3, v = (T - t_centre_c) "
                                "/ t_scale_c)", "source": "seed 002 eq 2", "temperature_column": tcol,
-                    "t_centre_c": fc.centre_c, "t_scale_c": fc.scale_c, "scaled_coefficients": list(fc.coeffs),
+                    "t_centre_c": fc.centre, "t_scale_c": fc.scale, "scaled_coefficients": list(fc.coeffs),
                     "average_s": float(opts.get("average_s", 100.0))},
         coefficients=fc.raw_coefficients(),
         units={"c0": "Hz", "c1": "Hz/C", "c2": "Hz/C^2", "c3": "Hz/C^3"},
-        validity={"tmin_c": fc.tmin_c, "tmax_c": fc.tmax_c},
+        validity={"tmin_c": fc.lo, "tmax_c": fc.hi},
         stats={"n": int(T.size), "rms_hz": float(np.sqrt(np.mean(err ** 2))),
                "max_abs_error_c": float(np.abs(fc.solve(f) - T).max())},
     )
@@ -338,7 +333,7 @@ def predict_hrg_forward(result: FitResult, dataset: Dataset, **opts: Any) -> tup
     fc = ForwardCubic(d["t_centre_c"], d["t_scale_c"], tuple(d["scaled_coefficients"]),
                       result.validity["tmin_c"], result.validity["tmax_c"])
     T = _column(dataset, d["temperature_column"], "hrg_forward prediction")
-    Tc = np.clip(T, fc.tmin_c, fc.tmax_c)
+    Tc = np.clip(T, fc.lo, fc.hi)
     return apply_mode(fc.evaluate(Tc), Tc != T, opts, "hrg_forward prediction")
 
 
@@ -377,8 +372,8 @@ def _eq7_inputs(dataset: Dataset, channel: str, opts: dict[str, Any], where: str
     t = _column(dataset, "time_s", where)
     y = _column(dataset, f"gyro_{channel}", where)
     average_s = float(opts.get("average_s", 100.0))
-    tb, cols, segb = block_average(t, {"T": T, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
-    _, rate = smoothed_and_rate(tb, cols["T"], average_s, segb)
+    tb, cols, segb, _ = block_means(t, {"T": T, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
+    rate = temperature_rate(tb, cols["T"], average_s, method=RATE_METHOD, segments=segb)
     validity = thermal_validity(dataset, T, average_s, cols["T"], rate)
     return source, cols["T"], rate, cols["y"], average_s, validity
 
@@ -393,6 +388,7 @@ def _eq7_result(model: str, channel: str, source: dict[str, Any], average_s: flo
         definition={"formula": "B = k0 + k1 T + k2 T^2 + k3 dT + k4 dT^2 + k5 T dT (T in C, dT = dT/dt in C/min)",
                     "source": "seed 002 eq 7", "temperature_source": source, "average_s": average_s,
                     "temperature_column": source.get("column"),
+                    "rate_method": RATE_METHOD, "rate_window_s": average_s,
                     "rate_filter": f"Savitzky-Golay order 2 over {average_s:g} s (gradient on {average_s:g}-s means)",
                     **extra_def},
         coefficients={name: float(v) for name, v in zip(EQ7_TERMS, k)},

@@ -1,4 +1,4 @@
-"""Fast, socket-free generation of a whole simulated run as a ``bench.fit.base.Dataset``.
+"""Fast, socket-free generation of a whole simulated run as a ``bench.dataset.Dataset``.
 
 Uses the very same ``GyroPhysics`` as the simulated bench (``record`` = vectorised ``advance_to`` +
 ``sample``); only the chamber, turntable and power supply are replaced by a program:
@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from bench.errors import PlanError
-from bench.fit.base import Dataset
+from bench.dataset import Dataset
 from bench.sim.physics import GyroPhysics, InputBatch, Outputs, PhysicsInputs, orientation_matrix
 from bench.sim.scenario import Scenario
 

@@ -30,6 +30,7 @@ from typing import Any, Callable
 
 from bench.clock import Clock
 from bench.sim.lineserver import LineServer
+from bench.sim.locked import locked_property
 
 DEFAULT_IDN = "Bench Simulator,SIM-PSU-60-5,SN000001,1.0"
 
@@ -80,26 +81,10 @@ class PsuModel:
                 self._t = float(t_bench)
 
     # getters -------------------------------------------------------------------------------------
-    @property
-    def output_on(self) -> bool:
-        with self._lock:
-            return self._output
-
-    @property
-    def on_since(self) -> float | None:
-        """Bench time the output was last switched on; ``None`` while off."""
-        with self._lock:
-            return self._on_since
-
-    @property
-    def voltage_setting(self) -> float:
-        with self._lock:
-            return self._voltage
-
-    @property
-    def current_limit(self) -> float:
-        with self._lock:
-            return self._current_limit
+    output_on = locked_property("_output", "True while the output is on.")
+    on_since = locked_property("_on_since", "Bench time the output was last switched on; ``None`` while off.")
+    voltage_setting = locked_property("_voltage", "Programmed voltage (V).")
+    current_limit = locked_property("_current_limit", "Programmed current limit (A).")
 
     def regulation(self) -> str:
         """``OFF``, ``CV`` or ``CC``."""

@@ -50,6 +50,7 @@ from typing import Any, Callable
 
 from bench.clock import Clock
 from bench.sim.lineserver import LineServer
+from bench.sim.locked import locked_all_axes_reader, locked_axis_reader, locked_property
 
 IDN = "Acutronic R&D USA,Acutrol3000,0,A8800-001-01.000-a"
 
@@ -201,47 +202,21 @@ class TableModel:
                 axis.advance(duration, self.step_s)
             self._t = float(t_bench)
 
-    @property
-    def time(self) -> float | None:
-        with self._lock:
-            return self._t
+    time = locked_property("_t", "Bench time of the last ``advance_to`` (s); None before the first.")
 
     # getters -----------------------------------------------------------------------------------
     @property
     def axes(self) -> int:
         return len(self._axes)
 
-    def angles(self) -> tuple[float, ...]:
-        with self._lock:
-            return tuple(a.position for a in self._axes)
-
-    def rates(self) -> tuple[float, ...]:
-        with self._lock:
-            return tuple(a.rate for a in self._axes)
-
-    def accelerations(self) -> tuple[float, ...]:
-        with self._lock:
-            return tuple(a.acceleration for a in self._axes)
-
-    def mode(self, axis: int) -> str:
-        with self._lock:
-            return self._axis(axis).mode
-
-    def interlock(self, axis: int) -> str:
-        with self._lock:
-            return self._axis(axis).interlock
-
-    def position_demand(self, axis: int) -> float:
-        with self._lock:
-            return self._axis(axis).position_demand
-
-    def rate_demand(self, axis: int) -> float:
-        with self._lock:
-            return self._axis(axis).rate_demand
-
-    def acceleration_demand(self, axis: int) -> float:
-        with self._lock:
-            return self._axis(axis).accel_demand
+    angles = locked_all_axes_reader("position")               # deg, per axis
+    rates = locked_all_axes_reader("rate")                    # deg/s
+    accelerations = locked_all_axes_reader("acceleration")    # deg/s^2
+    mode = locked_axis_reader("mode")
+    interlock = locked_axis_reader("interlock")
+    position_demand = locked_axis_reader("position_demand")
+    rate_demand = locked_axis_reader("rate_demand")
+    acceleration_demand = locked_axis_reader("accel_demand")
 
     def rate_limit(self, mode: str, axis: int) -> float:
         with self._lock:

@@ -40,6 +40,7 @@ import threading
 from pathlib import Path
 from typing import Protocol
 
+from bench.background import BackgroundLoop
 from bench.clock import Clock
 from bench.devices.ds18b20 import (FAULT_ALL_ZERO, FAULT_CRC, FAULT_FAILED_CONVERSION, FAULT_POWER_ON,
                                    FAULT_VANISHED, FAMILY_PREFIX, MAX_C, MIN_C, dallas_crc8, millidegrees,
@@ -122,13 +123,16 @@ class W1Faults:
             return kind
 
 
-class W1TreeSimulator:
+class W1TreeSimulator(BackgroundLoop):
+    thread_name = "w1-sim"
+
     def __init__(self, source: ProbeSource, clock: Clock, root: str | Path, probes: dict[str, str],
                  conversion_s: float = 0.75, *, resolution_bits: int = 12,
                  min_wall_interval_s: float = 0.02) -> None:
         if conversion_s <= 0:
             raise ValueError(f"conversion_s must be > 0, got {conversion_s}")
         config_byte(resolution_bits)
+        super().__init__()
         self.source = source
         self.clock = clock
         self.root = Path(root)
@@ -142,33 +146,13 @@ class W1TreeSimulator:
         self.last_update_t: float | None = None
         self._retained = {name: bytes(9) for name in self.probes}
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
 
     def device_dir(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}"
 
-    def start(self) -> None:
-        if self._thread is not None:
-            return
+    def _before_start(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         self.update()
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name="w1-sim", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
-
-    def __enter__(self) -> "W1TreeSimulator":
-        self.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
 
     def _run(self) -> None:
         try:

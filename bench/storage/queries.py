@@ -16,6 +16,8 @@ from bench.storage.models import (SEGMENT_KINDS, Bench, Event, Fit, Gap, Gyro, R
                                   Suspension, utcnow)
 
 TERMINAL = frozenset({RunStatus.COMPLETED.value, RunStatus.ABORTED.value, RunStatus.FAILED.value})
+ACTIVE = frozenset({RunStatus.RUNNING.value, RunStatus.PAUSED.value, RunStatus.STOPPING.value,
+                    RunStatus.SUSPENDED.value})      # a worker owns the run
 TRANSITIONS: dict[str, frozenset[str]] = {
     "queued": frozenset({"running", "aborted", "failed"}),
     "running": frozenset({"paused", "stopping", "completed", "aborted", "failed", "suspended"}),
@@ -89,6 +91,16 @@ def list_runs(session: Session, *, status: str | Iterable[str] | None = None, li
     return list(session.scalars(stmt))
 
 
+def stamp_run_status(run: Run, new: str, now: dt.datetime) -> None:
+    """Set ``run.status`` to ``new`` (no transition check) and stamp ``started_at`` on the first
+    ``running`` and ``finished_at`` on a terminal status."""
+    run.status = new
+    if new == RunStatus.RUNNING.value and run.started_at is None:
+        run.started_at = now
+    if new in TERMINAL:
+        run.finished_at = now
+
+
 def set_run_status(session: Session, run_id: int, status: str | RunStatus, *, error: str | None = None,
                    worker: str | None = None) -> Run:
     """Move a run through the state machine ``TRANSITIONS``; stamps ``started_at`` on the first
@@ -99,11 +111,7 @@ def set_run_status(session: Session, run_id: int, status: str | RunStatus, *, er
         raise InvalidTransition(f"run {run_id}: cannot go from {run.status!r} to {new!r} "
                                 f"(allowed: {', '.join(sorted(TRANSITIONS[run.status])) or 'none, it is final'})")
     now = utcnow()
-    run.status = new
-    if new == RunStatus.RUNNING.value and run.started_at is None:
-        run.started_at = now
-    if new in TERMINAL:
-        run.finished_at = now
+    stamp_run_status(run, new, now)
     if error is not None:
         run.error = error
     if worker is not None:
@@ -113,14 +121,18 @@ def set_run_status(session: Session, run_id: int, status: str | RunStatus, *, er
     return run
 
 
-def claim_next_run(session: Session, worker: str, *, now: dt.datetime | None = None) -> Run | None:
-    """Take the oldest ``queued`` run whose ``start_at`` has come (or is unset) and mark it
-    ``running`` for ``worker``.  PostgreSQL: ``FOR UPDATE SKIP LOCKED`` so two workers never claim the
-    same run; SQLite serialises writers anyway (the status is re-checked in the UPDATE)."""
+def claim_next_run(session: Session, worker: str, *, bench_id: int | None = None,
+                   now: dt.datetime | None = None, **values: Any) -> Run | None:
+    """Take the next due ``queued`` run (of bench ``bench_id`` when given) and mark it ``running`` for
+    ``worker`` (``values``: more columns to set, e.g. ``config_snapshot``).  The one claim order:
+    scheduled runs whose ``start_at`` has come, earliest ``start_at`` first; then unscheduled runs in
+    order of creation.  PostgreSQL: ``FOR UPDATE SKIP LOCKED`` so two workers never claim the same
+    run; SQLite serialises writers anyway (the status is re-checked in the UPDATE)."""
     now = now or utcnow()
-    stmt = (select(Run.id).where(Run.status == RunStatus.QUEUED.value,
-                                 (Run.start_at.is_(None)) | (Run.start_at <= now))
-            .order_by(Run.start_at.is_(None), Run.start_at, Run.id).limit(1))
+    where = [Run.status == RunStatus.QUEUED.value, (Run.start_at.is_(None)) | (Run.start_at <= now)]
+    if bench_id is not None:
+        where.append(Run.bench_id == bench_id)
+    stmt = select(Run.id).where(*where).order_by(Run.start_at.is_(None), Run.start_at, Run.id).limit(1)
     if session.get_bind().dialect.name == "postgresql":
         stmt = stmt.with_for_update(skip_locked=True)
     run_id = session.scalars(stmt).first()
@@ -128,7 +140,7 @@ def claim_next_run(session: Session, worker: str, *, now: dt.datetime | None = N
         return None
     res = session.execute(update(Run).where(Run.id == run_id, Run.status == RunStatus.QUEUED.value)
                           .values(status=RunStatus.RUNNING.value, worker=worker, heartbeat_at=now,
-                                  started_at=func.coalesce(Run.started_at, now)))
+                                  started_at=func.coalesce(Run.started_at, now), **values))
     if res.rowcount != 1:
         return None
     session.flush()
