@@ -3,9 +3,16 @@ ranges, so a typo is an error rather than a silently ignored setting."""
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
+from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+
+MAX_ROW_ID = 2**63 - 1          # the databases' 64-bit integer keys; a larger id is refused (422), not looked up
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="a stored id (1 .. 2^63-1)")]
+BodyRowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
+from bench.fit.formula import MAX_FORMULA_CHARS  # noqa: E402  (one limit for CLI and API)
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
@@ -34,10 +41,10 @@ class RunCreate(_Body):
 
 
 class FitCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=300,
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS,
                        description="a model name (static, dynamic, patent37, hrg, fog_stepwise...) or a formula")
-    run_ids: list[int] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
-    validation_run_ids: list[int] = Field(default_factory=list, max_length=20,
+    run_ids: list[BodyRowId] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
+    validation_run_ids: list[BodyRowId] = Field(default_factory=list, max_length=20,
                                           description="held-out runs the report evaluates on")
     gyro_id: str | None = Field(None, pattern=ID_PATTERN, description="defaults to the runs' gyro")
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
@@ -56,9 +63,9 @@ class FitCreate(_Body):
 
 
 class CloseLoopCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=300, description="declared model: a linear model or a formula")
-    train_run_id: int = Field(..., ge=1)
-    validation_run_id: int = Field(..., ge=1)
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, description="declared model: a linear model or a formula")
+    train_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
+    validation_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
     latitude_deg: float | None = Field(None, ge=-90, le=90)
 

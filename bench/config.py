@@ -77,6 +77,8 @@ class GyroConfig(_Strict):
     temp_scale: float = Field(0.01, gt=0)
     reconnect_s: float = Field(0.5, gt=0)       # wall seconds between reconnect attempts
     channels: tuple[str, ...] = ("x", "y", "z")
+    # measurement range, deg/s (KVH DSP-1750: +-490); imported rates beyond it are refused
+    range_dps: float = Field(490.0, gt=0, le=1e6)
 
 
 class ProbeConfig(_Strict):

@@ -19,7 +19,7 @@ from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
 from api.problems import Problem
-from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate
+from api.schemas import RowId, ID_PATTERN, CloseLoopCreate, FitCreate
 from api.views import iso
 from bench.errors import BenchError
 from bench.fit.base import Dataset, FitResult
@@ -191,13 +191,13 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
 
 
 @router.get("/fits/{fit_id}", summary="One fit version (all its channels)")
-def get_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         return _group_doc(_group_rows(s, fit_id))
 
 
 @router.post("/fits/{fit_id}/accept", summary="Make this version the gyro's accepted coefficients for its model")
-def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
+def accept_fit(fit_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
     with db.session() as s:
         rows = _group_rows(s, fit_id)
         queries.accept_fits(s, rows[0].gyro_id, rows[0].model, rows[0].version)
@@ -208,7 +208,7 @@ def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Dep
 
 
 @router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version")
-def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def export_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.export import build_export
 
     with db.session() as s:
@@ -224,7 +224,7 @@ def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
 
 @router.get("/fits/{fit_id}/report", summary="HTML report of this version on its training / validation runs",
             response_class=HTMLResponse)
-def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def fit_report(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.catalog import predict
     from bench.fit.report import render_fit_report
 
@@ -305,7 +305,7 @@ def create_close_loop(body: CloseLoopCreate, request: Request, db: Database = De
 
 
 @router.get("/close-loop/{analysis_id}", summary="Close-the-loop analysis: status and report")
-def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_close_loop(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:
@@ -315,7 +315,7 @@ def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principa
 
 @router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
             summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation")
-def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.closeloop_report import render_close_loop_report
 
     with db.session() as s:

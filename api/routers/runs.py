@@ -22,7 +22,7 @@ import procedures
 from api.auth import Principal, require
 from api.deps import get_db, run_or_404, stale_after_s
 from api.problems import Problem, summary, validation_errors
-from api.schemas import ID_PATTERN, DataFormat, DataStream, RunCreate
+from api.schemas import RowId, ID_PATTERN, DataFormat, DataStream, RunCreate
 from api.views import TERMINAL, iso, run_detail, run_summary
 from bench.config import BenchConfig
 from bench.engine import plan_summary
@@ -64,6 +64,7 @@ def create_run(body: RunCreate, request: Request, response: Response, db: Databa
         config = BenchConfig.model_validate(config_doc)
         plan = module.build(params)
         estimate = plan_summary(plan, config)
+        procedures.check_duration(estimate)
     except PlanError as exc:
         raise Problem(422, "Plan refused", f"{body.procedure} on bench {body.bench}: {exc}") from None
     with db.session() as s:
@@ -103,7 +104,7 @@ def list_runs(request: Request, db: Database = Depends(get_db), _: Principal = D
 
 
 @router.get("/{run_id}", summary="Run state: status, step, progress, ETA, latest readings, gaps, suspensions")
-def get_run(run_id: int, request: Request, db: Database = Depends(get_db),
+def get_run(run_id: RowId, request: Request, db: Database = Depends(get_db),
             _: Principal = Depends(require("viewer"))) -> dict[str, Any]:
     with db.session() as s:
         run = run_or_404(s, run_id)
@@ -136,22 +137,22 @@ def _request(db: Database, run_id: int, command: str, who: Principal) -> JSONRes
 
 
 @router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)")
-def stop_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+def stop_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "stop", who)
 
 
 @router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)")
-def abort_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+def abort_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "abort", who)
 
 
 @router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)")
-def pause_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+def pause_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "pause", who)
 
 
 @router.post("/{run_id}/resume", summary="Resume a paused run")
-def resume_run(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+def resume_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "resume", who)
 
 
@@ -199,7 +200,7 @@ def _cell(v: Any) -> Any:
 
 @router.get("/{run_id}/data", summary="Recorded data: 1-s means, frames, probes or telemetry (JSON or CSV)",
             responses={200: {"content": {"application/json": {}, "text/csv": {}}}})
-def run_data(run_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+def run_data(run_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
              stream: DataStream = Query("seconds", description="seconds = aligned 1-s means (gyro deg/h, probes, "
                                         "chamber...); frames = every gyro frame; probes; telemetry"),
              t_from: float | None = Query(None, description="bench time (s) from, as in the bench_time_s / t column"),
@@ -251,7 +252,7 @@ def _event_doc(e: Event) -> dict[str, Any]:
 
 @router.get("/{run_id}/events", summary="Run events; live as Server-Sent Events with follow=true",
             responses={200: {"content": {"application/json": {}, "text/event-stream": {}}}})
-def run_events(run_id: int, request: Request, db: Database = Depends(get_db),
+def run_events(run_id: RowId, request: Request, db: Database = Depends(get_db),
                _: Principal = Depends(require("viewer")),
                after: int = Query(0, ge=0, le=2**62, description="only events with a larger id"),
                follow: bool = Query(False, description="stream new events (text/event-stream) until the run ends"),

@@ -29,7 +29,7 @@ from sqlalchemy import select
 
 from bench.storage.db import Database
 from bench.storage.errors import StorageError
-from bench.storage.models import ProbeReadingRow, Run, Segment, Telemetry
+from bench.storage.models import Gyro, ProbeReadingRow, Run, Segment, Telemetry
 from bench.storage.reader import read_frames, second_means
 
 _TO_DPH = {"deg/s": 3600.0, "rad/s": 180.0 / math.pi * 3600.0, "deg/h": 1.0}
@@ -249,9 +249,14 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
             meta = {"run_id": str(run.id), "procedure": run.procedure, "sample_period_s": "1"}
             if run.gyro_id:
                 meta["gyro_id"] = run.gyro_id
+                gyro = s.get(Gyro, run.gyro_id)
+                if gyro is not None and gyro.type:
+                    meta["gyro_type"] = str(gyro.type)
         gyro_cfg = snapshot.get("gyro") or {}
         if gyro_cfg.get("frame"):
-            meta["gyro_type"] = str(gyro_cfg["frame"])
+            meta["gyro_frame"] = str(gyro_cfg["frame"])
+            meta.setdefault("gyro_type", str(gyro_cfg["frame"]))
+        recorded_channels = gyro_cfg.get("channels") if "import" in snapshot else None
         if max_age_s is None:
             ecfg = live.get("engine_config") or {}
             periods = [float(ecfg.get(k, 0.0) or 0.0) for k in ("telemetry_period_s", "probe_period_s", "max_tick_s")]
@@ -267,7 +272,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
         if keep.any():
             meta["bench_time0_s"] = repr(float(t[0] - cols["time_s"][0]))
         for name in sorted(cols):
-            if name.startswith(("gyro_", "freq_")):
+            if name.startswith("freq_") or (name.startswith("gyro_") and (
+                    recorded_channels is None or name[5:] in recorded_channels)):
                 out[name] = cols[name][keep]
         probes = [n for n in sorted(cols) if n.startswith("temp_") and n not in ("temp_gyro", "temp_point_c")]
         for name in probes or (["temp_gyro"] if "temp_gyro" in cols else []):
@@ -279,7 +285,7 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
             if name in cols:
                 out[name] = cols[name][keep]
         lat = latitude_deg if latitude_deg is not None else snapshot.get("latitude_deg")
-        if lat is not None and out["orientation"].size and bool(np.all(out["orientation"] != "")):
+        if lat is not None:       # rows without an orientation are left out of Earth-rate removal by the fit
             meta["latitude_deg"] = repr(float(lat))
         return Dataset(out, meta)
     finally:
