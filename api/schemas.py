@@ -51,6 +51,11 @@ class FitCreate(_Body):
     latitude_deg: float | None = Field(None, ge=-90, le=90)
     accept: bool = Field(False, description="make this version the gyro's accepted coefficients (admin only)")
 
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        return _model_name(value)
+
     @field_validator("run_ids", "validation_run_ids")
     @classmethod
     def _positive(cls, value: list[int]) -> list[int]:
@@ -62,12 +67,23 @@ class FitCreate(_Body):
         return value
 
 
+def _model_name(value: str) -> str:
+    from bench.fit.catalog import check_model_name
+
+    return check_model_name(value)
+
+
 class CloseLoopCreate(_Body):
     model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, description="declared model: a linear model or a formula")
     train_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
     validation_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
     latitude_deg: float | None = Field(None, ge=-90, le=90)
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        return _model_name(value)
 
 
 DataStream = Literal["seconds", "frames", "probes", "telemetry"]

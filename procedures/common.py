@@ -50,18 +50,9 @@ def _not_bool(value: Any) -> bool:
 
 
 def _check_model(name: str) -> str:
-    """A fit model name from the registry, or a formula that parses within the formula limits."""
-    from bench.fit.catalog import NAMED_MODELS
-    from bench.fit.formula import parse_formula
+    from bench.fit.catalog import check_model_name   # a registered model or a formula within the limits
 
-    if name.strip() in NAMED_MODELS:
-        return name.strip()
-    try:
-        parse_formula(name)
-    except Exception as exc:  # noqa: BLE001 - FormulaError: the message says what and where
-        raise ValueError(f"{name[:60]!r} is neither a fit model ({', '.join(NAMED_MODELS)}) nor a valid formula: "
-                         f"{str(exc).splitlines()[0]}") from None
-    return name
+    return check_model_name(name)
 
 
 ModelName = Annotated[str, Field(min_length=1, max_length=300), AfterValidator(_check_model)]

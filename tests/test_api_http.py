@@ -92,12 +92,41 @@ def test_validation_messages(env):
     doc = is_problem(c.post("/runs", json=run_body(start_at="2030-01-01T22:00:00"), headers=OPERATOR), 422)
     assert "time zone" in doc["detail"]
     # a plan the bench refuses (chamber limits) is refused before anything is queued
-    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "end_c": -200.0}), headers=OPERATOR), 422)
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "end_c": -90.0}), headers=OPERATOR), 422)
     assert doc["title"] == "Plan refused"
     assert c.get("/runs", headers=VIEWER).json()["total"] == 0
     is_problem(c.get("/runs/abc", headers=VIEWER), 422)
     is_problem(c.get("/runs?limit=0", headers=VIEWER), 422)
     is_problem(c.get("/nowhere", headers=VIEWER), 404)
+
+
+def test_bad_parameters_are_refused_when_queued(env):
+    """Issue drills: absurd durations and ramp rates, a bool for a number, a model name that is a path,
+    an id beyond the database's integers: 422 with the parameter named, nothing queued."""
+    db, c = env
+    for params, where in (({"soak_h": 1e9}, "soak_h"), ({"rate_c_per_min": 1e-12}, "rate_c_per_min"),
+                          ({"soak_h": True}, "soak_h"), ({"fit_models": ["../../etc/passwd"]}, "fit_models.0"),
+                          ({"fit_models": ["t1^99999"]}, "fit_models.0"),
+                          ({"fit_models": ["(" * 3000 + "t1" + ")" * 3000]}, "fit_models.0")):
+        doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, **params}), headers=OPERATOR), 422)
+        assert doc["errors"][0]["where"] == f"body.params.{where}", doc
+    # every parameter within its bounds, but the whole plan longer than 30 days of bench time
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "soak_h": 719.0, "warmup_min": 43000.0}),
+                            headers=OPERATOR), 422)
+    assert "30 days" in doc["detail"]
+    # faster than the chamber can ramp: the bench config's limit
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "rate_c_per_min": 50.0}), headers=OPERATOR),
+                     422)
+    assert "max_ramp_c_per_min" in doc["detail"]
+    assert c.get("/runs", headers=VIEWER).json()["total"] == 0
+    for path in ("/runs/7251189334503670677504", "/runs/9223372036854775808/events", "/fits/99999999999999999999999",
+                 "/close-loop/99999999999999999999999"):
+        is_problem(c.get(path, headers=VIEWER), 422)
+    is_problem(c.get("/runs/9223372036854775807", headers=VIEWER), 404)
+    for body in ({"model": "t1^99999", "run_ids": [1]}, {"model": "(" * 20 + "t1" + ")" * 20, "run_ids": [1]},
+                 {"model": "static", "run_ids": [2**70]}):
+        doc = is_problem(c.post("/fits", json=body, headers=OPERATOR), 422)
+        assert doc["errors"][0]["where"].startswith(("body.model", "body.run_ids")), doc
 
 
 def test_queue_schedule_cancel_and_control_requests(env):

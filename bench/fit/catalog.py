@@ -40,6 +40,21 @@ for _name, _fit, _predict, _desc, _needs in (
 NAMED_MODELS = tuple(registered_models())
 
 
+def check_model_name(name: str) -> str:
+    """``name`` if it is a registered model or a formula within the formula limits, else ValueError naming
+    why (the same check for procedure parameters, the API and the CLI)."""
+    from bench.fit.formula import FormulaError, parse_formula
+
+    if name.strip() in NAMED_MODELS:
+        return name.strip()
+    try:
+        parse_formula(name)
+    except FormulaError as exc:
+        raise ValueError(f"{name[:60]!r} is neither a fit model ({', '.join(NAMED_MODELS)}) nor a valid formula: "
+                         f"{str(exc).splitlines()[0]}") from None
+    return name
+
+
 def target_of(result: FitResult, data: Dataset) -> np.ndarray:
     """What the model predicts, measured on ``data``: the target column, less the Earth rate when the
     fit removed it."""
@@ -51,4 +66,4 @@ def target_of(result: FitResult, data: Dataset) -> np.ndarray:
     return y
 
 
-__all__ = ["fit_model", "predict", "compensate", "target_of", "NAMED_MODELS"]
+__all__ = ["check_model_name", "fit_model", "predict", "compensate", "target_of", "NAMED_MODELS"]
