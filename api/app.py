@@ -46,6 +46,7 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
     app.include_router(fits.router)
     app.include_router(meta.router)
     app.include_router(dashboard.router)
+    problems.document_problems(app)
     return app
 
 

@@ -18,7 +18,7 @@ from sqlalchemy import and_, func, select
 from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
-from api.problems import Problem
+from api.problems import Problem, problem_codes
 from api.schemas import RowId, ID_PATTERN, CloseLoopCreate, FitCreate
 from api.views import iso
 from bench.errors import BenchError
@@ -314,7 +314,8 @@ def get_close_loop(analysis_id: RowId, db: Database = Depends(get_db), _: Princi
 
 
 @router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
-            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation")
+            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation",
+            openapi_extra=problem_codes(409))
 def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.closeloop_report import render_close_loop_report
 

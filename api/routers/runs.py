@@ -21,7 +21,7 @@ from sqlalchemy import func, select, update
 import procedures
 from api.auth import Principal, require
 from api.deps import get_db, run_or_404, stale_after_s
-from api.problems import Problem, summary, validation_errors
+from api.problems import Problem, problem_codes, summary, validation_errors
 from api.schemas import RowId, ID_PATTERN, DataFormat, DataStream, RunCreate
 from api.views import TERMINAL, iso, run_detail, run_summary
 from bench.config import BenchConfig
@@ -136,22 +136,22 @@ def _request(db: Database, run_id: int, command: str, who: Principal) -> JSONRes
                              "detail": "the bench worker applies the request at its next tick"}, status_code=202)
 
 
-@router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)")
+@router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)", openapi_extra=problem_codes(409))
 def stop_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "stop", who)
 
 
-@router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)")
+@router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)", openapi_extra=problem_codes(409))
 def abort_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "abort", who)
 
 
-@router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)")
+@router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)", openapi_extra=problem_codes(409))
 def pause_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "pause", who)
 
 
-@router.post("/{run_id}/resume", summary="Resume a paused run")
+@router.post("/{run_id}/resume", summary="Resume a paused run", openapi_extra=problem_codes(409))
 def resume_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "resume", who)
 
@@ -199,7 +199,7 @@ def _cell(v: Any) -> Any:
 
 
 @router.get("/{run_id}/data", summary="Recorded data: 1-s means, frames, probes or telemetry (JSON or CSV)",
-            responses={200: {"content": {"application/json": {}, "text/csv": {}}}})
+            responses={200: {"content": {"application/json": {}, "text/csv": {}}}}, openapi_extra=problem_codes(413))
 def run_data(run_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
              stream: DataStream = Query("seconds", description="seconds = aligned 1-s means (gyro deg/h, probes, "
                                         "chamber...); frames = every gyro frame; probes; telemetry"),

@@ -40,7 +40,7 @@ def check_batch(cols: dict[str, np.ndarray], first_row: int, limit_dph: float, w
         if name.startswith("gyro_"):
             bad = np.flatnonzero(np.abs(arr) > limit_dph)
             if bad.size:
-                raise DataFormatError(f"{arr[bad[0]]!r} deg/h is outside {why}",
+                raise DataFormatError(f"{float(arr[bad[0]])!r} deg/h is outside {why}",
                                       column=name, source=f"{source} (data row {first_row + int(bad[0]) + 1})")
 
 
@@ -185,7 +185,7 @@ def _store(db, run_id: int, src: _Source, kind: str, period: float, progress) ->
                     gyro[:, i] = cols[f"gyro_{c}"] / 3600.0
             freq = None
             if kind == "hrg":
-                freq = np.full((m, 3), np.nan)
+                freq = np.zeros((m, 3))      # a channel the file lacks: 0 Hz, left out on export (snapshot)
                 for i, c in enumerate("xyz"):
                     if f"freq_{c}" in cols:
                         freq[:, i] = cols[f"freq_{c}"]

@@ -195,14 +195,14 @@ def _violation(cols: dict[str, np.ndarray], prev_t: float | None) -> tuple[int, 
         if name.startswith("freq_"):
             bad = np.flatnonzero(~(arr > 0) & ~np.isnan(arr))
             if bad.size:
-                problems.append((int(bad[0]), name, f"frequency {arr[bad[0]]!r} Hz: must be positive"))
+                problems.append((int(bad[0]), name, f"frequency {float(arr[bad[0]])!r} Hz: must be positive"))
             continue
         limits = PLAUSIBLE.get(name) or PLAUSIBLE.get(name[:5])
         if limits is not None:
             lo, hi = limits
             bad = np.flatnonzero((arr < lo) | (arr > hi))
             if bad.size:
-                problems.append((int(bad[0]), name, f"{arr[bad[0]]!r} C is outside the plausible range "
+                problems.append((int(bad[0]), name, f"{float(arr[bad[0]])!r} C is outside the plausible range "
                                                      f"{lo:g}..{hi:g} C"))
     return min(problems) if problems else None
 

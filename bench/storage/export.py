@@ -256,7 +256,9 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
         if gyro_cfg.get("frame"):
             meta["gyro_frame"] = str(gyro_cfg["frame"])
             meta.setdefault("gyro_type", str(gyro_cfg["frame"]))
-        recorded_channels = gyro_cfg.get("channels") if "import" in snapshot else None
+        imported = "import" in snapshot      # an imported run holds only the channels its file had
+        recorded_channels = gyro_cfg.get("channels") if imported else None
+        freq_channels = gyro_cfg.get("freq_channels") if imported else None
         if max_age_s is None:
             ecfg = live.get("engine_config") or {}
             periods = [float(ecfg.get(k, 0.0) or 0.0) for k in ("telemetry_period_s", "probe_period_s", "max_tick_s")]
@@ -272,8 +274,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
         if keep.any():
             meta["bench_time0_s"] = repr(float(t[0] - cols["time_s"][0]))
         for name in sorted(cols):
-            if name.startswith("freq_") or (name.startswith("gyro_") and (
-                    recorded_channels is None or name[5:] in recorded_channels)):
+            if (name.startswith("freq_") and (freq_channels is None or name[5:] in freq_channels)) or (
+                    name.startswith("gyro_") and (recorded_channels is None or name[5:] in recorded_channels)):
                 out[name] = cols[name][keep]
         probes = [n for n in sorted(cols) if n.startswith("temp_") and n not in ("temp_gyro", "temp_point_c")]
         for name in probes or (["temp_gyro"] if "temp_gyro" in cols else []):
