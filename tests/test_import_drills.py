@@ -181,3 +181,25 @@ def test_dataset_round_trip_through_the_csv_keeps_the_fit(db, tmp_path):
     for other in (b, c):
         assert other.coefficients == pytest.approx(a.coefficients, rel=1e-9, abs=1e-9)
     assert a.definition["earth_rate"]["earth_rate_removed"] is True
+
+
+def test_missing_latitude_with_known_orientation_fits_with_a_warning(tmp_path):
+    """No latitude but an orientation: the fit says the Earth rate stays in the bias (the CLI prints it)."""
+    from tests.test_api_http import synthetic_dataset
+
+    ds = synthetic_dataset(n=600)
+    ds.meta.pop("latitude_deg", None)
+    res = fit_model("static", ds, "x")
+    warning = res.definition["earth_rate"]["warning"]
+    assert res.definition["earth_rate"]["earth_rate_removed"] is False and "latitude unknown" in warning
+    path = tmp_path / "nolat.csv"
+    write_csv(ds, path)
+    out = runner.invoke(app, ["fit", "static", str(path), "--json", str(tmp_path / "o.json"), "--channel", "x"])
+    assert out.exit_code == 0 and "warning: x: latitude unknown" in out.output
+    # with the latitude, rows whose orientation is unknown are left out (and said so), not taken as NUE
+    ds.meta["latitude_deg"] = "45.75"
+    ds.columns["orientation"] = ds.columns["orientation"].astype(object)
+    ds.columns["orientation"][:100] = ""
+    res = fit_model("static", ds, "x")
+    assert res.definition["earth_rate"]["earth_rate_removed"] is True
+    assert "100 of 600 rows have no orientation" in res.definition["earth_rate"]["warning"]

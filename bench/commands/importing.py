@@ -55,7 +55,7 @@ class _Source:
 
 
 def import_csv(db, path, gyro_id: str, *, bench_name: str | None = None, operator: str = "",
-               progress: Callable[[int], None] | None = None, block_bytes: int = 4 << 20) -> int:
+               progress: Callable[[int], None] | None = None, block_bytes: int = 1 << 20) -> int:
     """Import the CSV file ``path`` (any size, batches of about ``block_bytes``); returns the run id."""
     from bench.fit.csvio import CsvStream
 
@@ -224,19 +224,23 @@ def _store(db, run_id: int, src: _Source, kind: str, period: float, progress) ->
                     writer.add_telemetry(float(t[i]), "psu", psu_on=bool(pw[i]))
             writer.add_many(frames)
             codes = cols["orientation"] if "orientation" in cols else None
-            for i in range(m):       # segments: stretches of constant orientation (absent column: NUE)
+            # segments: stretches of constant orientation (absent column: NUE), bounded half-way between
+            # rows so that every row lies well inside its own (stored times are rounded to microseconds)
+            for i in range(m):
                 code = str(codes[i]) if codes is not None else "NUE"
+                ti = float(t[i])
                 if code != seg_code:
-                    if seg_code:
-                        _segment(writer, seg_code, seg_start, float(t[i]))
-                    seg_code, seg_start = code, float(t[i])
-            last_t = float(t[-1]) if m else last_t
+                    edge = ti - period / 2.0 if last_t is None else (last_t + ti) / 2.0
+                    if seg_code is not None:
+                        _segment(writer, seg_code, seg_start, edge)
+                    seg_code, seg_start = code, edge
+                last_t = ti
             writer.flush()           # bounded memory: one batch at a time
             row += m
             if progress is not None:
                 progress(m)
-        if seg_code:
-            _segment(writer, seg_code, seg_start, last_t + period)
+        if seg_code is not None:
+            _segment(writer, seg_code, seg_start, last_t + period / 2.0)
         writer.close()
     except BaseException:
         writer.abandon()
@@ -244,5 +248,8 @@ def _store(db, run_id: int, src: _Source, kind: str, period: float, progress) ->
 
 
 def _segment(writer, code: str, t_start: float, t_end: float) -> None:
-    writer.add_segment("record", t_start, t_end, orientation=code, labels={"source": "import", "position": code})
+    """A recorded stretch of the file (every row lies in one, so none is left out when the run is read);
+    an empty orientation cell stays unknown."""
+    labels = {"source": "import", **({"position": code} if code else {})}
+    writer.add_segment("record", t_start, t_end, orientation=code or None, labels=labels)
 

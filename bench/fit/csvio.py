@@ -252,8 +252,8 @@ def _table_columns(table, header: list[str]) -> dict[str, np.ndarray] | None:
     for name in header:
         col = table.column(name)
         if name == "orientation":
-            arr = np.asarray(col.to_pylist(), dtype=str) if table.num_rows else np.array([], dtype=str)
-            for code in set(arr.tolist()) - {""}:
+            arr = col.to_numpy(zero_copy_only=False).astype(str) if table.num_rows else np.array([], dtype=str)
+            for code in set(np.unique(arr).tolist()) - {""}:
                 try:
                     validate_orientation(code)
                 except ValueError:

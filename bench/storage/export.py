@@ -72,6 +72,12 @@ def _interpolated(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, max_gap_s
     tail = (after >= t_src.size) & (t - t_src[-1] <= max_gap_s)
     ok = exact | (inside & (gap <= max_gap_s)) | tail
     out[~ok] = np.nan
+    # a sample within a microsecond (the resolution of stored frame times) is the value itself, not a
+    # slope times the rounding: an imported CSV's probe column reads back exactly
+    nearest = np.clip(np.searchsorted(t_src, t), 1, max(1, t_src.size - 1))
+    for cand in (nearest - 1, np.minimum(nearest, t_src.size - 1)):
+        same = np.abs(t_src[cand] - t) <= 1e-6
+        out[same] = v_src[cand[same]]
     return out
 
 
