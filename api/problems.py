@@ -114,7 +114,7 @@ PROBLEM_SCHEMA = {
     },
     "additionalProperties": True,
 }
-_DESCRIPTIONS = {401: "No token, or an unknown token", 403: "The token's role is not enough",
+_DESCRIPTIONS = {400: "The body is not valid JSON", 401: "No token, or an unknown token", 403: "The token's role is not enough",
                  404: "No such resource", 405: "Method not allowed", 409: "Not possible in the resource's current "
                  "state", 413: "Too much data selected", 422: "Invalid input: which field and why",
                  503: "Database unavailable (retry later)"}
@@ -152,9 +152,22 @@ def _route_codes(route) -> set[int]:
         codes |= {404, 422}
     if d.query_params or d.body_params or d.header_params:
         codes.add(422)
+    if d.body_params:
+        codes.add(400)             # a body that is not JSON at all
     if get_db in calls:
         codes.add(503)
     return codes
+
+
+def _api_routes(routes):
+    """Every APIRoute, also inside included routers (included here without an extra prefix)."""
+    from fastapi.routing import APIRoute
+
+    for r in routes:
+        if isinstance(r, APIRoute):
+            yield r
+        elif getattr(r, "original_router", None) is not None:
+            yield from _api_routes(r.original_router.routes)
 
 
 def document_problems(app: FastAPI) -> None:
@@ -162,7 +175,6 @@ def document_problems(app: FastAPI) -> None:
     each as ``application/problem+json`` with the Problem schema (FastAPI's default 422 shape is
     replaced: errors here are problem documents)."""
     from fastapi.openapi.utils import get_openapi
-    from fastapi.routing import APIRoute
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema:
@@ -171,8 +183,8 @@ def document_problems(app: FastAPI) -> None:
         doc.setdefault("components", {}).setdefault("schemas", {})["Problem"] = PROBLEM_SCHEMA
         for schema_name in ("HTTPValidationError", "ValidationError"):
             doc["components"]["schemas"].pop(schema_name, None)
-        for route in app.routes:
-            if not isinstance(route, APIRoute) or not route.include_in_schema:
+        for route in _api_routes(app.routes):
+            if not route.include_in_schema:
                 continue
             for method in route.methods:
                 op = doc["paths"].get(route.path_format, {}).get(method.lower())

@@ -8,12 +8,18 @@ from typing import Annotated, Any, Literal
 from fastapi import Path
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from bench.fit.formula import MAX_FORMULA_CHARS          # one limit for the CLI and the API
+from procedures import PROCEDURE_MODULES
 
-MAX_ROW_ID = 2**63 - 1          # the databases' 64-bit integer keys; a larger id is refused (422), not looked up
-RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="a stored id (1 .. 2^63-1)")]
+
+MAX_ROW_ID = 2**53 - 1    # ids beyond are refused (422), never looked up (exact in JSON numbers; 64-bit keys hold it)
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="a stored id (1 .. 2^53-1)")]
 BodyRowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
-from bench.fit.formula import MAX_FORMULA_CHARS  # noqa: E402  (one limit for CLI and API)
+GyroPath = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", description="gyro ID")]
+ProcedureName = Literal[PROCEDURE_MODULES]
 
+# a registered model name or a formula (bench.fit.formula grammar and limits)
+MODEL_FORMAT = "gyrobench-model"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
 
@@ -23,7 +29,7 @@ class _Body(BaseModel):
 
 
 class RunCreate(_Body):
-    procedure: str = Field(..., min_length=1, max_length=64, description="a name from GET /procedures")
+    procedure: ProcedureName = Field(..., description="a name from GET /procedures")
     gyro_id: str = GyroId
     bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
     params: dict[str, Any] = Field(default_factory=dict,
@@ -41,7 +47,7 @@ class RunCreate(_Body):
 
 
 class FitCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS,
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, json_schema_extra={"format": MODEL_FORMAT},
                        description="a model name (static, dynamic, patent37, hrg, fog_stepwise...) or a formula")
     run_ids: list[BodyRowId] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
     validation_run_ids: list[BodyRowId] = Field(default_factory=list, max_length=20,
@@ -74,7 +80,8 @@ def _model_name(value: str) -> str:
 
 
 class CloseLoopCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, description="declared model: a linear model or a formula")
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, json_schema_extra={"format": MODEL_FORMAT},
+                       description="declared model: a linear model or a formula")
     train_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
     validation_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)

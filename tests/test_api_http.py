@@ -85,7 +85,7 @@ def test_validation_messages(env):
     assert "body.params.soak_h" in doc["detail"] and "greater than 0" in doc["detail"]
     doc = is_problem(c.post("/runs", json=run_body(procedure="nope"), headers=OPERATOR), 422)
     assert "thermal_ramp" in doc["detail"]
-    doc = is_problem(c.post("/runs", json=run_body(bench="other"), headers=OPERATOR), 422)
+    doc = is_problem(c.post("/runs", json=run_body(bench="other"), headers=OPERATOR), 404)
     assert "bench1" in doc["detail"]
     doc = is_problem(c.post("/runs", json=run_body(gyro_id="bad id!"), headers=OPERATOR), 422)
     assert doc["errors"][0]["where"] == "body.gyro_id"
@@ -122,7 +122,8 @@ def test_bad_parameters_are_refused_when_queued(env):
     for path in ("/runs/7251189334503670677504", "/runs/9223372036854775808/events", "/fits/99999999999999999999999",
                  "/close-loop/99999999999999999999999"):
         is_problem(c.get(path, headers=VIEWER), 422)
-    is_problem(c.get("/runs/9223372036854775807", headers=VIEWER), 404)
+    is_problem(c.get("/runs/9223372036854775807", headers=VIEWER), 422)
+    is_problem(c.get("/runs/9007199254740991", headers=VIEWER), 404)
     for body in ({"model": "t1^99999", "run_ids": [1]}, {"model": "(" * 20 + "t1" + ")" * 20, "run_ids": [1]},
                  {"model": "static", "run_ids": [2**70]}):
         doc = is_problem(c.post("/fits", json=body, headers=OPERATOR), 422)
@@ -169,7 +170,7 @@ def test_procedures_and_benches(env):
     ramp = procs["thermal_ramp"]
     assert ramp["defaults"]["end_c"] == -30.0 and "soak_h" in ramp["parameters_schema"]["properties"]
     assert c.get("/procedures/thermal_ramp", headers=VIEWER).json()["name"] == "thermal_ramp"
-    is_problem(c.get("/procedures/none", headers=VIEWER), 404)
+    is_problem(c.get("/procedures/none", headers=VIEWER), 422)       # the schema lists the procedures
     benches = c.get("/benches", headers=VIEWER).json()["benches"]
     assert benches[0]["name"] == "bench1" and benches[0]["online"] is False and benches[0]["state"] == "offline"
     assert set(benches[0]["devices"]) == {"chamber", "turntable", "gyro", "probes", "psu"}
@@ -226,7 +227,7 @@ def test_import_fit_accept_coefficients(env):
     export = c.get(f"/fits/{fit['id']}/export", headers=VIEWER).json()
     assert export["schema"] == "gyrobench.fit.export" and len(export["models"]) == 3
     is_problem(c.get("/fits/99999", headers=VIEWER), 404)
-    is_problem(c.post("/fits", json={**body, "run_ids": [99999]}, headers=OPERATOR), 422)
+    is_problem(c.post("/fits", json={**body, "run_ids": [99999]}, headers=OPERATOR), 404)
     is_problem(c.post("/fits", json={**body, "model": "t1 +"}, headers=OPERATOR), 422)
     # data of the imported run
     data = c.get(f"/runs/{train}/data?stream=seconds&every=100", headers=VIEWER).json()
@@ -243,7 +244,7 @@ def test_close_loop_job(env):
     train = import_dataset(db, synthetic_dataset(seed=3), "G-200")
     val = import_dataset(db, synthetic_dataset(seed=4), "G-200")
     body = {"model": "t1", "train_run_id": train, "validation_run_id": val}
-    is_problem(c.post("/close-loop", json={**body, "validation_run_id": train}, headers=OPERATOR), 422)
+    is_problem(c.post("/close-loop", json={**body, "validation_run_id": train}, headers=OPERATOR), 409)
     r = c.post("/close-loop", json=body, headers=OPERATOR)
     assert r.status_code == 202
     aid = r.json()["id"]

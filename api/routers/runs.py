@@ -39,27 +39,23 @@ def _bench_name(session, run: Run) -> str | None:
     return session.scalar(select(Bench.name).where(Bench.id == run.bench_id)) if run.bench_id else None
 
 
-@router.post("", status_code=201, summary="Queue a run")
+@router.post("", status_code=201, summary="Queue a run", openapi_extra=problem_codes(404))
 def create_run(body: RunCreate, request: Request, response: Response, db: Database = Depends(get_db),
                who: Principal = Depends(require("operator"))) -> dict[str, Any]:
     """Validate the procedure parameters and the plan against the bench's configuration, then queue
     the run for the bench's worker (at ``start_at`` if given)."""
-    try:
-        module = procedures.get(body.procedure)
-    except KeyError:
-        raise Problem(422, "Unknown procedure", f"procedure {body.procedure!r} does not exist; known: "
-                      f"{', '.join(procedures.PROCEDURE_MODULES)}") from None
+    with db.session() as s:
+        bench = s.scalars(select(Bench).where(Bench.name == body.bench)).first()
+        if bench is None:
+            known = ", ".join(s.scalars(select(Bench.name).order_by(Bench.name))) or "none configured"
+            raise Problem(404, "Unknown bench", f"bench {body.bench!r} is not configured; known: {known}")
+        config_doc = dict(bench.config or {})
+    module = procedures.get(body.procedure)            # the schema allows only known names
     try:
         params = module.Params.model_validate(body.params)
     except ValidationError as exc:
         errors = validation_errors(list(exc.errors()), ("body", "params"))
         raise Problem(422, "Invalid procedure parameters", summary(errors), errors=errors) from None
-    with db.session() as s:
-        bench = s.scalars(select(Bench).where(Bench.name == body.bench)).first()
-        if bench is None:
-            known = ", ".join(s.scalars(select(Bench.name).order_by(Bench.name))) or "none configured"
-            raise Problem(422, "Unknown bench", f"bench {body.bench!r} is not configured; known: {known}")
-        config_doc = dict(bench.config or {})
     try:
         config = BenchConfig.model_validate(config_doc)
         plan = module.build(params)
