@@ -7,12 +7,15 @@ Format (issue "measured-data CSV v1"):
   are joined with newlines into ``meta["notes"]`` (the writer emits ``meta["notes"]`` as ``# notes: ...``
   lines, one per note line, so a read/write/read cycle gives the same ``meta``).
 * One header row, then data rows, comma separated.
-* Columns: ``time_s`` (required, seconds, strictly increasing, never empty); one or more ``gyro_<ch>``
-  (deg/h, as output: Earth rate *not* removed); one or more ``temp_<name>`` (C); optional
-  ``freq_<ch>`` (Hz), ``orientation`` (three letters from E W N S U D: directions of body x, y, z, a
+* Columns: ``time_s`` (required, seconds, strictly increasing, never empty); ``gyro_<ch>`` (deg/h, as
+  output: Earth rate *not* removed) and/or ``freq_<ch>`` (Hz), at least one of them; one or more
+  ``temp_<name>`` (C); optional ``orientation`` (three letters from E W N S U D: directions of body x, y, z, a
   right-handed frame; absent column = ``NUE`` everywhere, empty cell = missing), ``power`` (0/1),
   ``chamber_pv``, ``chamber_sp`` (C), ``table_rate_dps``.  Any other column name is refused.
 * An empty numeric field is a missing value (NaN).  ``nan``/``inf`` text is refused.
+* Plausibility: temperatures (``temp_<name>``, ``chamber_pv``, ``chamber_sp``) within -100..+200 C,
+  frequencies > 0; a value outside is refused naming line and column (gyro rates are checked against
+  the bench's gyro range by ``bench import``).  A leading UTF-8 byte-order mark is ignored.
 
 Rows are parsed by pyarrow's CSV reader (C++, correctly rounded float parsing); when it or any check
 fails, a plain ``csv``-module pass re-reads the rows to name the exact problem.
@@ -23,6 +26,7 @@ shortest round-trip ``repr``; NaN is written as an empty field.
 Public API::
 
     read_csv(source, *, text=None) -> Dataset        # source: path (or a name when text is given)
+    CsvStream(path, block_bytes=...)                 # .meta, .header; iterate: checked batches of columns
     parse_csv_text(text, *, source="<text>") -> Dataset
     write_csv(dataset, path) -> None                 # atomic (temp file + rename)
     format_csv(dataset) -> str

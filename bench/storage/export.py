@@ -232,10 +232,12 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
     frame second), ``gyro_<ch>`` (deg/h, Earth rate not removed), ``temp_<probe>`` (DS18B20; the
     gyro's own sensor as ``temp_gyro`` only when no probe was read), ``freq_<ch>`` (HRG),
     ``orientation`` (segment label, empty = unknown), ``power`` (PSU output 1/0), ``chamber_pv``,
-    ``chamber_sp``.  Metadata: run_id, procedure, gyro_id, gyro_type, sample_period_s = 1,
-    bench_time0_s (bench time of ``time_s`` 0) and ``latitude_deg`` (argument, else the run's config
-    snapshot) only when every row has an orientation, so the Earth rate is removed only where it can
-    be.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
+    ``chamber_sp``.  Metadata (everything a fit needs, so export -> import -> fit equals the fit by run
+    ID): run_id, procedure, gyro_id, gyro_type (the gyro's stored type, else the frame kind),
+    gyro_frame, sample_period_s = 1, bench_time0_s (bench time of ``time_s`` 0) and ``latitude_deg``
+    (argument, else the run's config snapshot) whenever it is known; a fit leaves rows without an
+    orientation out of Earth-rate removal and says so.  An imported run gives only the gyro and
+    frequency channels its file had.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
     ``max_age_s`` (previous-sample hold of probes/telemetry) defaults to the run's recorded engine
     periods (``runs.live["engine_config"]``) x 2, at least 30 s.
     """
