@@ -6,7 +6,7 @@ import datetime as dt
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from bench.fit.formula import MAX_FORMULA_CHARS          # one limit for the CLI and the API
 from procedures import PROCEDURE_MODULES
@@ -26,6 +26,20 @@ GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 lett
 
 class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_for_numbers(cls, data: Any) -> Any:
+        """true/false is not a number: refused for every field that is not a flag (JSON 2.0 stays 2)."""
+        if isinstance(data, dict):
+            for name, value in data.items():
+                field = cls.model_fields.get(name)
+                if field is None or field.annotation is bool or name == "params":
+                    continue
+                items = value if isinstance(value, list) else [value]
+                if any(isinstance(v, bool) for v in items):
+                    raise ValueError(f"{name}: true/false given where a number or text is needed")
+        return data
 
 
 class RunCreate(_Body):
@@ -82,8 +96,8 @@ def _model_name(value: str) -> str:
 class CloseLoopCreate(_Body):
     model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, json_schema_extra={"format": MODEL_FORMAT},
                        description="declared model: a linear model or a formula")
-    train_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
-    validation_run_id: int = Field(..., ge=1, le=MAX_ROW_ID)
+    train_run_id: BodyRowId
+    validation_run_id: BodyRowId
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
     latitude_deg: float | None = Field(None, ge=-90, le=90)
 

@@ -2,11 +2,12 @@
 wait-until-stable), and parameter types."""
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, Strict
 
 from bench.engine import SetChamber, Soak, WaitStable
+from bench.fit.formula import MAX_FORMULA_CHARS
 from bench.engine.steps import Labels, Step
 
 
@@ -19,20 +20,9 @@ TEMPERATURE_LIMITS_C = (-100.0, 200.0)
 MAX_POINTS = 200                 # temperature points / positions / legs of one plan
 
 
-def _number(value: Any) -> Any:
-    if isinstance(value, bool):
-        raise ValueError("a number is needed, not true/false")
-    return value
-
-
-def _integer(value: Any) -> Any:
-    if isinstance(value, bool) or (isinstance(value, float) and not value.is_integer()):
-        raise ValueError("a whole number is needed")
-    return value
-
-
-Real = Annotated[float, BeforeValidator(_number), Field(allow_inf_nan=False)]
-Count = Annotated[int, BeforeValidator(_integer)]
+# Strict: true/false is not a number (nor 1.0 a count) and text is not a number; ints are fine for floats
+Real = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Count = Annotated[int, Strict()]
 Hours = Annotated[Real, Field(gt=0, le=MAX_HOURS, description=f"hours, at most {MAX_HOURS:g}")]
 Minutes = Annotated[Real, Field(gt=0, le=MAX_MINUTES, description=f"minutes, at most {MAX_MINUTES:g}")]
 MinutesOrZero = Annotated[Real, Field(ge=0, le=MAX_MINUTES, description=f"minutes, at most {MAX_MINUTES:g}")]
@@ -42,11 +32,7 @@ Tolerance = Annotated[Real, Field(gt=0, le=50.0, description="degrees C")]
 RampRate = Annotated[Real, Field(ge=MIN_RAMP_C_PER_MIN, le=100.0,
                                  description=f"C/min, at least {MIN_RAMP_C_PER_MIN} (at most the chamber's "
                                              f"max_ramp_c_per_min, checked on the plan)")]
-Flag = Annotated[bool, BeforeValidator(lambda v: v if isinstance(v, bool) else _not_bool(v))]
-
-
-def _not_bool(value: Any) -> bool:
-    raise ValueError("true or false is needed")
+Flag = Annotated[bool, Strict()]
 
 
 def _check_model(name: str) -> str:
@@ -55,7 +41,7 @@ def _check_model(name: str) -> str:
     return check_model_name(name)
 
 
-ModelName = Annotated[str, Field(min_length=1, max_length=300), AfterValidator(_check_model)]
+ModelName = Annotated[str, Field(min_length=1, max_length=MAX_FORMULA_CHARS), AfterValidator(_check_model)]
 ModelList = Annotated[list[ModelName], Field(min_length=1, max_length=10)]
 CelsiusPoints = Annotated[list[Celsius], Field(min_length=1, max_length=MAX_POINTS)]
 

@@ -125,9 +125,11 @@ def test_bad_parameters_are_refused_when_queued(env):
     is_problem(c.get("/runs/9223372036854775807", headers=VIEWER), 422)
     is_problem(c.get("/runs/9007199254740991", headers=VIEWER), 404)
     for body in ({"model": "t1^99999", "run_ids": [1]}, {"model": "(" * 20 + "t1" + ")" * 20, "run_ids": [1]},
-                 {"model": "static", "run_ids": [2**70]}):
+                 {"model": "static", "run_ids": [2**70]}, {"model": "static", "run_ids": [True]},
+                 {"model": "static", "run_ids": [1], "latitude_deg": True}):
         doc = is_problem(c.post("/fits", json=body, headers=OPERATOR), 422)
-        assert doc["errors"][0]["where"].startswith(("body.model", "body.run_ids")), doc
+        assert doc["errors"][0]["where"].startswith("body"), doc
+        assert any(k in doc["detail"] for k in ("model", "run_ids", "latitude_deg")), doc
 
 
 def test_queue_schedule_cancel_and_control_requests(env):
