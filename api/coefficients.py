@@ -38,7 +38,8 @@ def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
     if not rows:
         if not known:
             raise NoCoefficients(f"no gyro {gyro_id!r} is stored", False)
-        what = f"{model or 'model'} version {version}" if version else (f"accepted {model} fit" if model else "accepted fit")
+        what = (f"{model or 'model'} version {version}" if version else
+                (f"accepted {model} fit" if model else "accepted fit"))
         raise NoCoefficients(f"gyro {gyro_id!r} has no {what}", True)
     models: dict[str, dict[str, Any]] = {}
     for r in rows:

@@ -114,7 +114,9 @@ PROBLEM_SCHEMA = {
     },
     "additionalProperties": True,
 }
-_DESCRIPTIONS = {400: "The body is not valid JSON", 401: "No token, or an unknown token", 403: "The token's role is not enough",
+PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+_DESCRIPTIONS = {400: "The body is not valid JSON", 401: "No token, or an unknown token",
+                 403: "The token's role is not enough",
                  404: "No such resource", 405: "Method not allowed", 409: "Not possible in the resource's current "
                  "state", 413: "Too much data selected", 422: "Invalid input: which field and why",
                  503: "Database unavailable (retry later)"}
@@ -194,7 +196,7 @@ def document_problems(app: FastAPI) -> None:
                 responses = op.setdefault("responses", {})
                 for code in sorted(codes):
                     responses[str(code)] = {"description": _DESCRIPTIONS.get(code, "Problem"),
-                                            "content": {MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+                                            "content": {MEDIA_TYPE: {"schema": PROBLEM_REF}}}
         app.openapi_schema = doc
         return doc
 

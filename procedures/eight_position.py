@@ -21,7 +21,8 @@ from typing import Literal
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Orient, Plan, Record
-from procedures.common import MAX_POINTS, CelsiusPoints, Count, Hours, Minutes, ModelList, StableParams, _Params, frange, hold_at
+from procedures.common import (MAX_POINTS, CelsiusPoints, Count, Hours, Minutes, ModelList, StableParams, _Params,
+                               frange, hold_at)
 
 NAME = "eight_position"
 DESCRIPTION = ("S000 3.2 static eight-position test: -40..+60 C every 10 C, 4 h soak, 1 min in each of "

@@ -17,7 +17,8 @@ from __future__ import annotations
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Plan, Ramp, Record, SetChamber, Soak, WaitStable
-from procedures.common import Celsius, CelsiusPoints, Flag, Hours, Minutes, ModelList, RampRate, Tolerance, _Params, frange
+from procedures.common import (Celsius, CelsiusPoints, Flag, Hours, Minutes, ModelList, RampRate, Tolerance, _Params,
+                               frange)
 
 NAME = "hrg_calibration"
 DESCRIPTION = ("S002 HRG: frequency-temperature points -40..50 C every 10 C with 5 h soak (DS18B20 "

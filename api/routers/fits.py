@@ -144,7 +144,8 @@ def gyro_fits(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = 
 
 
 # -------------------------------------------------------------------------------------- fits
-@router.post("/fits", status_code=201, summary="Fit a model on stored runs", openapi_extra=problem_codes(404, 409))
+@router.post("/fits", status_code=201, summary="Fit a model on stored runs",
+             openapi_extra=problem_codes(404, 409))
 def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     """Fit ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
     ``validation_run_ids`` too) and store it as the next version of the model for the gyro."""
@@ -168,7 +169,8 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
     channels = list(body.channels) if body.channels else train.gyro_channels()
     missing = [c for c in channels if f"gyro_{c}" not in train]
     if missing:
-        raise Problem(409, "Channel not recorded", f"channels {missing} are not in the data (have {train.gyro_channels()})")
+        raise Problem(409, "Channel not recorded",
+                      f"channels {missing} are not in the data (have {train.gyro_channels()})")
     opts = {"latitude_deg": body.latitude_deg} if body.latitude_deg is not None else {}
     try:
         doc, results = fit_channels(body.model, train, validate, channels, opts)

@@ -32,6 +32,8 @@ from bench.storage.db import Database
 from bench.storage.models import Bench, Event, ProbeReadingRow, Run, RunRequest, Telemetry, utcnow
 
 router = APIRouter(prefix="/runs", tags=["runs"])
+CONTROL_RESPONSES = {200: {"description": "A queued run was cancelled"},
+                     202: {"description": "Request recorded; the bench worker applies it at its next tick"}}
 MAX_ROWS = 200_000
 
 
@@ -132,22 +134,26 @@ def _request(db: Database, run_id: int, command: str, who: Principal) -> JSONRes
                              "detail": "the bench worker applies the request at its next tick"}, status_code=202)
 
 
-@router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)", openapi_extra=problem_codes(409))
+@router.post("/{run_id}/stop", summary="Stop: finish the current recording, then safe state (cancels a queued run)",
+             openapi_extra=problem_codes(409), responses=CONTROL_RESPONSES)
 def stop_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "stop", who)
 
 
-@router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)", openapi_extra=problem_codes(409))
+@router.post("/{run_id}/abort", summary="Abort: safe state now (cancels a queued run)",
+             openapi_extra=problem_codes(409), responses=CONTROL_RESPONSES)
 def abort_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "abort", who)
 
 
-@router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)", openapi_extra=problem_codes(409))
+@router.post("/{run_id}/pause", summary="Pause a running run (its step clock stops)",
+             openapi_extra=problem_codes(409), responses=CONTROL_RESPONSES)
 def pause_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "pause", who)
 
 
-@router.post("/{run_id}/resume", summary="Resume a paused run", openapi_extra=problem_codes(409))
+@router.post("/{run_id}/resume", summary="Resume a paused run",
+             openapi_extra=problem_codes(409), responses=CONTROL_RESPONSES)
 def resume_run(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     return _request(db, run_id, "resume", who)
 
@@ -195,7 +201,8 @@ def _cell(v: Any) -> Any:
 
 
 @router.get("/{run_id}/data", summary="Recorded data: 1-s means, frames, probes or telemetry (JSON or CSV)",
-            responses={200: {"content": {"application/json": {}, "text/csv": {}}}}, openapi_extra=problem_codes(413))
+            responses={200: {"content": {"application/json": {}, "text/csv": {}}}},
+            openapi_extra=problem_codes(413))
 def run_data(run_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
              stream: DataStream = Query("seconds", description="seconds = aligned 1-s means (gyro deg/h, probes, "
                                         "chamber...); frames = every gyro frame; probes; telemetry"),

@@ -237,7 +237,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
     gyro_frame, sample_period_s = 1, bench_time0_s (bench time of ``time_s`` 0) and ``latitude_deg``
     (argument, else the run's config snapshot) whenever it is known; a fit leaves rows without an
     orientation out of Earth-rate removal and says so.  An imported run gives only the gyro and
-    frequency channels its file had.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
+    frequency channels its file had.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or
+    the default SQLite file).
     ``max_age_s`` (previous-sample hold of probes/telemetry) defaults to the run's recorded engine
     periods (``runs.live["engine_config"]``) x 2, at least 30 s.
     """
