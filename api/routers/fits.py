@@ -18,8 +18,8 @@ from sqlalchemy import and_, func, select
 from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
-from api.problems import Problem
-from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate
+from api.problems import Problem, problem_codes
+from api.schemas import ID_PATTERN, GyroPath, RowId, CloseLoopCreate, FitCreate
 from api.views import iso
 from bench.errors import BenchError
 from bench.fit.base import Dataset, FitResult
@@ -77,18 +77,18 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
         for rid in run_ids:
             run = s.get(Run, rid)
             if run is None:
-                raise Problem(422, "Unknown run", f"run {rid} does not exist")
+                raise Problem(404, "Unknown run", f"run {rid} does not exist")
             gyro_ids.add(run.gyro_id)
             parts.append((rid, latitude_deg))
     if len(gyro_ids) > 1:
-        raise Problem(422, "Runs of different gyros", f"runs {run_ids} belong to gyros {sorted(map(str, gyro_ids))}")
+        raise Problem(409, "Runs of different gyros", f"runs {run_ids} belong to gyros {sorted(map(str, gyro_ids))}")
     datasets = []
     for rid, lat in parts:
         ds = run_dataset(rid, db, latitude_deg=lat)
         if "temp_point_c" in ds.columns:       # segment label (set point), not a probe: never a fit input
             ds = Dataset({k: v for k, v in ds.columns.items() if k != "temp_point_c"}, ds.meta)
         if len(ds) < 10:
-            raise Problem(422, "Not enough data", f"run {rid} has {len(ds)} recorded seconds stored; at least 10 "
+            raise Problem(409, "Not enough data", f"run {rid} has {len(ds)} recorded seconds stored; at least 10 "
                           f"are needed to fit")
         datasets.append(ds)
     if len(datasets) == 1:
@@ -118,11 +118,12 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
 
 # ------------------------------------------------------------------------------ coefficients
 @router.get("/gyros/{gyro_id}/coefficients", summary="A gyro's coefficients: the latest accepted fit per model")
-async def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
+async def coefficients(gyro_id: GyroPath, request: Request, db: Database = Depends(get_db),
                  _: Principal = Depends(require("viewer")),
                  model: str | None = Query(None, min_length=1, max_length=300),
                  version: int | None = Query(None, ge=1, le=1_000_000,
-                                             description="a specific version (needs model); accepted or not")):
+                                             description="a specific version (of model, or of every model "
+                                                         "that has it); accepted or not")):
     if not _valid_id(gyro_id):
         raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
     try:
@@ -171,7 +172,7 @@ def _valid_id(text: str) -> bool:
 
 
 @router.get("/gyros/{gyro_id}/fits", summary="Every fit version of a gyro")
-def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+def gyro_fits(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
               model: str | None = Query(None, min_length=1, max_length=300)):
     with db.session() as s:
         if s.get(Gyro, gyro_id) is None:
@@ -184,7 +185,8 @@ def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depen
 
 
 # -------------------------------------------------------------------------------------- fits
-@router.post("/fits", status_code=201, summary="Fit a model on stored runs")
+@router.post("/fits", status_code=201, summary="Fit a model on stored runs",
+             openapi_extra=problem_codes(404, 409))
 def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     """Fit ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
     ``validation_run_ids`` too) and store it as the next version of the model for the gyro."""
@@ -200,7 +202,7 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
     if body.validation_run_ids:
         validate, vgyro = load_runs_dataset(db, body.validation_run_ids, body.latitude_deg)
         if vgyro != gyro_id:
-            raise Problem(422, "Runs of different gyros", f"validation runs belong to gyro {vgyro}, training "
+            raise Problem(409, "Runs of different gyros", f"validation runs belong to gyro {vgyro}, training "
                           f"runs to {gyro_id}")
     gyro_id = body.gyro_id or gyro_id
     if gyro_id is None:
@@ -208,12 +210,13 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
     channels = list(body.channels) if body.channels else train.gyro_channels()
     missing = [c for c in channels if f"gyro_{c}" not in train]
     if missing:
-        raise Problem(422, "Invalid input", f"channels {missing} are not in the data (have {train.gyro_channels()})")
+        raise Problem(409, "Channel not recorded",
+                      f"channels {missing} are not in the data (have {train.gyro_channels()})")
     opts = {"latitude_deg": body.latitude_deg} if body.latitude_deg is not None else {}
     try:
         doc, results = fit_channels(body.model, train, validate, channels, opts)
     except (BenchError, ValueError, KeyError, np.linalg.LinAlgError) as exc:
-        raise Problem(422, "Fit failed", f"{body.model} on runs {body.run_ids}: {str(exc).strip(chr(39))}") from None
+        raise Problem(409, "Fit failed", f"{body.model} on runs {body.run_ids}: {str(exc).strip(chr(39))}") from None
     stored = []
     for r in results:
         item = r.to_json()
@@ -232,13 +235,13 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
 
 
 @router.get("/fits/{fit_id}", summary="One fit version (all its channels)")
-def get_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         return _group_doc(_group_rows(s, fit_id))
 
 
 @router.post("/fits/{fit_id}/accept", summary="Make this version the gyro's accepted coefficients for its model")
-def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
+def accept_fit(fit_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
     with db.session() as s:
         rows = _group_rows(s, fit_id)
         queries.accept_fits(s, rows[0].gyro_id, rows[0].model, rows[0].version)
@@ -248,8 +251,9 @@ def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Dep
     return doc
 
 
-@router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version")
-def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+@router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version",
+            openapi_extra=problem_codes(409))
+def export_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.export import build_export
 
     with db.session() as s:
@@ -260,12 +264,12 @@ def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
         return build_export(rows[0].gyro_id, _results(rows), gyro_type=gyro_type,
                             source={"fit_id": fit_id, "run_ids": rows[0].run_ids, "version": rows[0].version})
     except BenchError as exc:
-        raise Problem(422, "Cannot export", str(exc)) from None
+        raise Problem(409, "Cannot export", str(exc)) from None
 
 
 @router.get("/fits/{fit_id}/report", summary="HTML report of this version on its training / validation runs",
-            response_class=HTMLResponse)
-def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+            response_class=HTMLResponse, openapi_extra=problem_codes(409))
+def fit_report(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.catalog import predict
     from bench.fit.report import render_fit_report
 
@@ -279,7 +283,7 @@ def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
         page = render_fit_report(_results(rows), train, validate, predict=predict,
                                  title=f"{first.gyro_id}: {first.model} v{first.version}")
     except (BenchError, ValueError, KeyError) as exc:
-        raise Problem(422, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
+        raise Problem(409, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
     return HTMLResponse(page)
 
 
@@ -321,17 +325,19 @@ def _analysis_doc(a: Analysis) -> dict[str, Any]:
             "error": a.error, "result": a.result}
 
 
-@router.post("/close-loop", status_code=202, summary="Close the loop on a training and a held-out run (background)")
+@router.post("/close-loop", status_code=202, summary="Close the loop on a training and a held-out run (background)",
+             openapi_extra=problem_codes(404, 409))
 def create_close_loop(body: CloseLoopCreate, request: Request, db: Database = Depends(get_db),
                       who: Principal = Depends(require("operator"))):
     if body.train_run_id == body.validation_run_id:
-        raise Problem(422, "Invalid input", "the validation run must differ from the training run")
+        raise Problem(409, "Same run twice", "the validation run must be another run than the training run (a "
+                      "held-out run)")
     with db.session() as s:
         gyros = set()
         for rid in (body.train_run_id, body.validation_run_id):
             run = s.get(Run, rid)
             if run is None:
-                raise Problem(422, "Unknown run", f"run {rid} does not exist")
+                raise Problem(404, "Unknown run", f"run {rid} does not exist")
             gyros.add(run.gyro_id)
         a = Analysis(kind="close_loop", gyro_id=next(iter(gyros)) if len(gyros) == 1 else None,
                      request=body.model_dump(mode="json"), status="queued", requested_by=who.name, created_at=utcnow())
@@ -346,7 +352,7 @@ def create_close_loop(body: CloseLoopCreate, request: Request, db: Database = De
 
 
 @router.get("/close-loop/{analysis_id}", summary="Close-the-loop analysis: status and report")
-def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_close_loop(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:
@@ -355,8 +361,9 @@ def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principa
 
 
 @router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
-            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation")
-def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation",
+            openapi_extra=problem_codes(409))
+def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.closeloop_report import render_close_loop_report
 
     with db.session() as s:
@@ -373,7 +380,7 @@ def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Princ
                                         title=f"Close-the-loop {analysis_id}: runs {body['train_run_id']} -> "
                                               f"{body['validation_run_id']}")
     except (BenchError, ValueError, KeyError) as exc:
-        raise Problem(422, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
+        raise Problem(409, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
     return HTMLResponse(page)
 
 

@@ -52,13 +52,20 @@ def format_channel_probes(mapping: dict[str, str]) -> str:
     return text
 
 
+DEFAULT_PROBE = "t1"      # S000/S001: probe T1 is the model temperature unless a map or a fit names another
+
+
 def default_probe(ds: Dataset, channel: str) -> str:
-    """The probe a channel uses when no map says otherwise: a probe named like the channel, else the
-    first probe of the data."""
+    """The probe a channel uses when no map says otherwise: a probe named like the channel, else
+    ``t1``; never another probe in its place (a missing T1 is an error naming it)."""
     names = ds.temp_names()
-    if not names:
-        raise DataFormatError("no temp_<name> column in data")
-    return channel if channel in names else names[0]
+    if channel in names:
+        return channel
+    if DEFAULT_PROBE in names:
+        return DEFAULT_PROBE
+    raise DataFormatError(f"no temp_{DEFAULT_PROBE} (the default probe) in data; give probe=NAME or a "
+                          f"channel_probes map to use another (temperature columns: "
+                          f"{', '.join(f'temp_{n}' for n in names) or 'none'})", column=f"temp_{DEFAULT_PROBE}")
 
 
 def channel_probe(ds: Dataset, channel: str) -> str:
