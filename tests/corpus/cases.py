@@ -25,6 +25,8 @@ COMPLETE = frozenset({"no_effect_missing"})
 UNEXPLAINED = frozenset({"unexplained_structure_remains", "partly_explained"})
 TRAIN_S = 10 * 3600.0
 VALIDATE_S = 8 * 3600.0
+MIN_VISIBILITY = 0.3
+MAX_DRAWS = 10
 POSITIONS = ("NUE", "ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
 
 
@@ -35,6 +37,9 @@ class ChannelTruth:
     declared: list[tuple]
     effects: list[fx.Effect]
     verdicts: frozenset[str]
+    coefficients: list[float]                # deg/h per unit of each effect's signal (physical size)
+    visibility: list[float]                  # share of each effect the declared model and the other
+                                             # effects cannot absorb (std of 100-s means, TRAIN)
 
     @property
     def declared_probes(self) -> list[str]:
@@ -42,7 +47,9 @@ class ChannelTruth:
 
     def describe(self) -> dict:
         return {"channel": self.channel, "declared_model": self.formula,
-                "effects": [e.describe() for e in self.effects], "verdicts": sorted(self.verdicts)}
+                "effects": [{**e.describe(), "coefficient": c, "visibility": v}
+                            for e, c, v in zip(self.effects, self.coefficients, self.visibility)],
+                "verdicts": sorted(self.verdicts)}
 
 
 @dataclass
@@ -104,7 +111,8 @@ def _library_effect(kind: str, rng, channel: str, probe: str | None = None) -> f
     others = _others(channel)
     p = probe or str(rng.choice(others))
     if kind == "thermal_lag":
-        return fx.ThermalLag(p, float(np.exp(rng.uniform(np.log(600), np.log(5400)))))
+        # at least ~20 min: a shorter lag is a rate (lag - T = -tau dT/dt) to any analysis
+        return fx.ThermalLag(p, float(np.exp(rng.uniform(np.log(1200), np.log(5400)))))
     if kind == "gradient":
         a, b = rng.choice(others, 2, replace=False)
         return fx.Gradient(str(a), str(b))
@@ -148,7 +156,10 @@ def _build(case_class: str, seed: int, rng, specs: list[ChannelSpec], train_plan
     train, st_tr, floors = make_run(train_plan, unit, specs, rng, lat, 0, meta)
     validate, st_va, _ = make_run(validate_plan, unit, specs, rng, lat, 1, meta)
     truth = {s.channel: ChannelTruth(s.channel, formula_text(s.declared), s.declared,
-                                     [e for e, _ in s.effects], s.verdicts) for s in specs}
+                                     [e for e, _ in s.effects], s.verdicts,
+                                     [unit.effect_coef[(s.channel, i)] for i in range(len(s.effects))],
+                                     [unit.effect_visibility[(s.channel, i)] for i in range(len(s.effects))])
+             for s in specs}
     return Case(case_class, seed, train, validate, truth, st_tr.hidden, st_va.hidden,
                 {s.channel: floors[s.channel] for s in specs})
 
@@ -156,36 +167,38 @@ def _build(case_class: str, seed: int, rng, specs: list[ChannelSpec], train_plan
 def _single(case_class: str, seed: int, kinds: list[str], *, channel: str | None = None,
             ratio=(5.0, 10.0), train_kw=None, validate_kw=None, verdicts=EXPLAINED,
             effect_factory: Callable | None = None, unit_noise=None) -> Case:
+    """A case with one channel under test.  Effects the declared model and the other true effects
+    would mostly absorb (visibility < MIN_VISIBILITY) cannot be named by anyone: such a draw is
+    replaced by the next one of the same seed."""
     rng = np.random.default_rng([zlib.crc32(case_class.encode()), seed])
-    ch = channel or str(rng.choice(["x", "y", "z"]))
-    if effect_factory is not None:
-        effs = effect_factory(rng, ch)
-    else:
-        effs = []
-        used_probes: set[str] = set()
-        for k in kinds:
-            for _ in range(20):
-                e = _library_effect(k, rng, ch)
-                if not (set(e.probes) & used_probes) or not e.probes:
-                    break
-            used_probes |= set(e.probes)
-            effs.append(e)
-    needs = _plan_needs([e.kind for e in effs])
-    tp = _train_plan(rng, **{**needs, **(train_kw or {})})
-    vp = _validate_plan(tp, rng, **(validate_kw or {}))
-    spec = ChannelSpec(ch, _declared(rng, ch), [(e, float(rng.uniform(*ratio))) for e in effs], verdicts)
-    return _build(case_class, seed, rng, [spec], tp, vp, unit_noise)
+    for _ in range(MAX_DRAWS):
+        ch = channel or str(rng.choice(["x", "y", "z"]))
+        if effect_factory is not None:
+            effs = effect_factory(rng, ch)
+        else:
+            effs = []
+            used_probes: set[str] = set()
+            for k in kinds:
+                for _ in range(20):
+                    e = _library_effect(k, rng, ch)
+                    if not (set(e.probes) & used_probes) or not e.probes:
+                        break
+                used_probes |= set(e.probes)
+                effs.append(e)
+        needs = _plan_needs([e.kind for e in effs])
+        tp = _train_plan(rng, **{**needs, **(train_kw or {})})
+        vp = _validate_plan(tp, rng, **(validate_kw or {}))
+        spec = ChannelSpec(ch, _declared(rng, ch), [(e, float(rng.uniform(*ratio))) for e in effs], verdicts)
+        case = _build(case_class, seed, rng, [spec], tp, vp, unit_noise)
+        if all(v >= MIN_VISIBILITY for v in case.truth[ch].visibility):
+            return case
+    raise RuntimeError(f"{case_class} seed {seed}: no draw with visible effects in {MAX_DRAWS} tries")
 
 
 LIBRARY_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",
                  "g_sensitivity", "scale_factor_temperature", "time_drift")
 PAIRABLE = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",
             "time_drift")
-
-
-def _colder(seed):
-    rng = np.random.default_rng(seed)
-    return dict(tmin_c=float(rng.uniform(-40, -35)))
 
 
 def _mode_hop(rng, ch):
@@ -215,6 +228,10 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     # one library effect on a probe other than the channel's own (t1 for x)
     **{f"effect_off_own_probe_{k}": (lambda k: lambda s: _single(f"effect_off_own_probe_{k}", s, [k]))(k)
        for k in LIBRARY_KINDS},
+    # a real effect while the validation run leaves the training range (diagnosis on the in-range part)
+    "effect_validation_colder": lambda s: _single(
+        "effect_validation_colder", s, [str(np.random.default_rng([5, s]).choice(PAIRABLE))],
+        train_kw=dict(tmin_c=-15.0), validate_kw=dict(tmin_c=-38.0)),
     # bias instability / 1/f noise with a real effect
     "effect_with_flicker": lambda s: _single(
         "effect_with_flicker", s, [str(np.random.default_rng(s).choice(PAIRABLE))],
@@ -242,6 +259,25 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     "unrecorded_mode_hop": lambda s: _single(
         "unrecorded_mode_hop", s, [], verdicts=UNEXPLAINED, effect_factory=_mode_hop),
 }
+
+
+def write_case(case: Case, directory) -> dict:
+    """Write the case as measured-data CSV v1 files (train.csv, validate.csv) and its truth
+    (truth.json) into ``directory``; returns the truth record."""
+    import json
+    from pathlib import Path
+
+    from bench.fit.csvio import write_csv
+
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    write_csv(case.train, d / "train.csv")
+    write_csv(case.validate, d / "validate.csv")
+    record = {"case_class": case.case_class, "seed": case.seed,
+              "channels": {ch: t.describe() for ch, t in case.truth.items()},
+              "noise_floor_dph": case.floors}
+    (d / "truth.json").write_text(json.dumps(record, indent=1), encoding="utf-8")
+    return record
 
 
 def make_case(case_class: str, seed: int) -> Case:

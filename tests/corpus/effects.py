@@ -212,14 +212,14 @@ class Humidity(Effect):
 
 
 class InternalNode(Effect):
-    """Bias driven by the electronics board's temperature above the case: an internal node without a
-    probe, self-heated by a load that changes and that no column records."""
+    """Bias driven by the self-heating of the electronics board: an internal node without a probe,
+    heated by a load that changes and that no column records."""
 
     def __init__(self):
         super().__init__("internal_node", explainable=False)
 
     def signal(self, run, channel):
-        return run.nodes["board"] - run.nodes["case"]
+        return run.hidden["board_self_heating_c"]
 
     def oracle(self, ds, hidden, channel):
         return hidden[self.kind][:, None]
