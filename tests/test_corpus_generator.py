@@ -58,3 +58,44 @@ def test_cases_are_reproducible_per_seed():
     for col in a.train.columns:
         assert np.array_equal(np.asarray(a.train[col]), np.asarray(b.train[col]), equal_nan=col != "orientation")
     assert a.truth.keys() == b.truth.keys()
+
+
+def _report(effects, verdict, residual):
+    return {"effects_added": [{"kind": k, "params": p} for k, p in effects], "verdict": verdict,
+            "_residuals": {"after": (None, residual)}}
+
+
+def test_referee_passes_the_truth_and_names_each_failure():
+    from tests.corpus.referee import score_channel
+
+    case = make_case("two_effects", 2)
+    ch = next(iter(case.truth))
+    ref = reference(case, ch)
+    truth = case.truth[ch]
+    right = [(e.kind, {"probe": e.probes[0]} if len(e.probes) == 1 else
+              {"probes": "-".join(e.probes)} if e.probes else {}) for e in truth.effects]
+    ok = score_channel(case, ch, _report(right, "explained", ref.residual_oracle))
+    assert ok.passed, ok.reasons
+    wrong_kind = score_channel(case, ch, _report(right[:1], "explained", ref.residual_oracle))
+    assert [r.split(":")[0] for r in wrong_kind.reasons] == ["kinds"]
+    dishonest = score_channel(case, ch, _report(right, "no_effect_missing", ref.residual_oracle))
+    assert [r.split(":")[0] for r in dishonest.reasons] == ["verdict"]
+    nothing_gained = score_channel(case, ch, _report(right, "explained", ref.residual_before))
+    assert [r.split(":")[0] for r in nothing_gained.reasons] == ["error"]
+    worse = score_channel(case, ch, _report(right, "explained", 2 * ref.residual_before))
+    assert {r.split(":")[0] for r in worse.reasons} == {"worse", "error"}
+
+
+def test_written_case_reads_back_as_measured_data(tmp_path):
+    import json
+
+    from bench.fit.csvio import read_csv
+    from tests.corpus.cases import write_case
+
+    case = make_case("effect_off_own_probe_g_sensitivity", 1)
+    record = write_case(case, tmp_path)
+    back = read_csv(tmp_path / "train.csv")
+    assert back.meta["channel_probes"] == "x=t1,y=t2,z=t3" and "latitude_deg" in back.meta
+    assert np.array_equal(back["temp_t2"], case.train["temp_t2"])
+    assert list(back["orientation"]) == list(case.train["orientation"])
+    assert json.loads((tmp_path / "truth.json").read_text())["channels"] == json.loads(json.dumps(record["channels"]))

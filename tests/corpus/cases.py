@@ -220,7 +220,7 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     # complete models under coloured noise and short validation runs: nothing may be added
     "complete_strong_flicker": lambda s: _single(
         "complete_strong_flicker", s, [], verdicts=COMPLETE,
-        unit_noise={"bi": (0.008, 0.015), "rrw": (0.001, 0.003)}),
+        unit_noise={"arw": (0.002, 0.004), "bi": (0.02, 0.04), "rrw": (0.001, 0.003)}),
     "complete_short_validation": lambda s: _single(
         "complete_short_validation", s, [], verdicts=COMPLETE,
         validate_kw=dict(duration_s=float(np.random.default_rng(s).uniform(5400, 9000)),
@@ -235,7 +235,7 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     # bias instability / 1/f noise with a real effect
     "effect_with_flicker": lambda s: _single(
         "effect_with_flicker", s, [str(np.random.default_rng(s).choice(PAIRABLE))],
-        unit_noise={"bi": (0.005, 0.01)}),
+        unit_noise={"arw": (0.002, 0.004), "bi": (0.01, 0.025)}),
     "two_effects": lambda s: _single(
         "two_effects", s, [str(k) for k in np.random.default_rng([2, s]).choice(PAIRABLE, 2, replace=False)],
         ratio=(4.0, 8.0)),

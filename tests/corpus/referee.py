@@ -31,6 +31,9 @@ BLOCK_S = 100.0
 
 # ------------------------------------------------------------------------------- report adapter
 
+PROBE_FREE_KINDS = frozenset({"warmup", "g_sensitivity", "time_drift"})
+
+
 def _kind_name(kind: str) -> str:
     # a gradual (memory) hysteresis may get its own kind name beside the relay; both are hysteresis
     return "hysteresis" if "hysteresis" in kind else kind
@@ -48,7 +51,11 @@ def _probe_set(params: dict[str, Any]) -> frozenset[str]:
 def added_effects(channel_report: dict[str, Any]) -> list[tuple[str, frozenset[str]]]:
     """(kind, probes) of every effect the product added: the ONE place that reads the report's
     effect schema (effects_added[i]["kind"], effects_added[i]["params"]["probe" | "probes"])."""
-    return [(_kind_name(e["kind"]), _probe_set(e.get("params", {}))) for e in channel_report.get("effects_added", [])]
+    out = []
+    for e in channel_report.get("effects_added", []):
+        kind = _kind_name(e["kind"])
+        out.append((kind, frozenset() if kind in PROBE_FREE_KINDS else _probe_set(e.get("params", {}))))
+    return out
 
 
 def product_validation_residual(channel_report: dict[str, Any], n_validate: int) -> np.ndarray | None:
@@ -119,6 +126,8 @@ class Reference:
     oracle_all: float
     coverage: float
     keep: np.ndarray = field(repr=False)
+    residual_before: np.ndarray = field(repr=False)
+    residual_oracle: np.ndarray = field(repr=False)
 
 
 def reference(case: Case, channel: str) -> Reference:
@@ -133,7 +142,7 @@ def reference(case: Case, channel: str) -> Reference:
     keep = in_range(truth, tr, va)
     t = va.time
     return Reference(std100(r_before, t, keep), std100(r_before, t), std100(r_oracle, t, keep),
-                     std100(r_oracle, t), float(np.mean(keep)), keep)
+                     std100(r_oracle, t), float(np.mean(keep)), keep, r_before, r_oracle)
 
 
 # ------------------------------------------------------------------------------- scoring
