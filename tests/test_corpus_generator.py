@@ -11,15 +11,21 @@ from tests.corpus.referee import reference
 
 
 def test_network_starts_in_equilibrium_and_follows_a_soak():
-    air = np.full(40000, 30.0)
-    air[:10] = 30.0
-    nodes = ph.network_temperatures(air, ph.random_network(np.random.default_rng(3)))
+    net = ph.random_network(np.random.default_rng(3))
+    net["room_c"] = 30.0
+    nodes = ph.network_temperatures(np.full(40000, 30.0), net)
     for name, t in nodes.items():
         assert abs(t[0] - 30.0) < 1e-9 and abs(t[-1] - 30.0) < 1e-9, name
+    net = ph.random_network(np.random.default_rng(4))
+    net["room_c"] = 10.0
     step = np.concatenate([np.full(100, 0.0), np.full(60000, 10.0)])
-    nodes = ph.network_temperatures(step, ph.random_network(np.random.default_rng(4)))
+    nodes = ph.network_temperatures(step, net)
     assert all(abs(t[-1] - 10.0) < 0.01 for t in nodes.values())
     assert nodes["case"][1000] > nodes["coil_x"][1000] - 5.0      # heat flows inwards from the case
+    # at a cold soak the base plate sits between the air and the room (heat leaks in through the shaft)
+    net["room_c"] = 25.0
+    nodes = ph.network_temperatures(np.full(20000, -30.0), net)
+    assert -30.0 < nodes["base"][-1] < 25.0 and nodes["base"][-1] > nodes["coil_x"][-1]
 
 
 def test_probes_are_ds18b20_quantised():
@@ -95,7 +101,9 @@ def test_written_case_reads_back_as_measured_data(tmp_path):
     case = make_case("effect_off_own_probe_g_sensitivity", 1)
     record = write_case(case, tmp_path)
     back = read_csv(tmp_path / "train.csv")
-    assert back.meta["channel_probes"] == "x=t1,y=t2,z=t3" and "latitude_deg" in back.meta
+    coils = {node[-1]: probe for probe, node in case.probe_nodes.items() if node.startswith("coil_")}
+    assert back.meta["channel_probes"] == f"x={coils['x']},y={coils['y']},z={coils['z']}"
+    assert "latitude_deg" in back.meta
     assert np.array_equal(back["temp_t2"], case.train["temp_t2"])
     assert list(back["orientation"]) == list(case.train["orientation"])
     assert json.loads((tmp_path / "truth.json").read_text())["channels"] == json.loads(json.dumps(record["channels"]))

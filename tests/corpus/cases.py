@@ -17,8 +17,7 @@ import numpy as np
 from bench.fit.base import Dataset
 from tests.corpus import effects as fx
 from tests.corpus.generator import (ChannelSpec, RunPlan, declared_probes, formula_text, make_run,
-                                    random_unit)
-from tests.corpus.physics import CHANNEL_PROBES
+                                    Unit, random_unit)
 
 EXPLAINED = frozenset({"explained"})
 COMPLETE = frozenset({"no_effect_missing"})
@@ -26,7 +25,7 @@ UNEXPLAINED = frozenset({"unexplained_structure_remains", "partly_explained"})
 TRAIN_S = 10 * 3600.0
 VALIDATE_S = 8 * 3600.0
 MIN_VISIBILITY = 0.3
-MAX_DRAWS = 10
+MAX_DRAWS = 20
 POSITIONS = ("NUE", "ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE")
 
 
@@ -40,6 +39,10 @@ class ChannelTruth:
     coefficients: list[float]                # deg/h per unit of each effect's signal (physical size)
     visibility: list[float]                  # share of each effect the declared model and the other
                                              # effects cannot absorb (std of 100-s means, TRAIN)
+    distinctness: list[float]                # error left (noise floors) when the best other library
+                                             # regressor replaces the effect
+    lookalikes: list[list]                   # per effect: (kind, probes) that imitate it within half
+                                             # a noise floor; the referee accepts them as the effect
 
     @property
     def declared_probes(self) -> list[str]:
@@ -47,8 +50,10 @@ class ChannelTruth:
 
     def describe(self) -> dict:
         return {"channel": self.channel, "declared_model": self.formula,
-                "effects": [{**e.describe(), "coefficient": c, "visibility": v}
-                            for e, c, v in zip(self.effects, self.coefficients, self.visibility)],
+                "effects": [{**e.describe(), "coefficient": c, "visibility": v, "distinctness": d,
+                             "lookalikes": [[k, list(p)] for k, p in look]}
+                            for e, c, v, d, look in zip(self.effects, self.coefficients, self.visibility,
+                                                        self.distinctness, self.lookalikes)],
                 "verdicts": sorted(self.verdicts)}
 
 
@@ -62,6 +67,7 @@ class Case:
     hidden_train: dict[str, np.ndarray]
     hidden_validate: dict[str, np.ndarray]
     floors: dict[str, float]
+    probe_nodes: dict[str, str]              # where each probe is glued (coil_x/y/z, base or case)
 
     def oracle_columns(self, channel: str, which: str) -> np.ndarray:
         """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data."""
@@ -92,24 +98,25 @@ def _cubic(probe: str) -> list[tuple]:
     return [("pow", probe, k) for k in (1, 2, 3)]
 
 
-def _declared(rng, channel: str) -> list[tuple]:
-    """The channel's own probe, cubic; half the time with a declared gradient to the base probe."""
-    own = CHANNEL_PROBES[channel]
+def _declared(rng, unit: Unit, channel: str) -> list[tuple]:
+    """The channel's own probe, cubic; half the time with a declared gradient to the structure probe."""
+    own = unit.channel_probes[channel]
     d = _cubic(own)
     if rng.random() < 0.5:
-        d.append(("diff", own, "t4"))
+        d.append(("diff", own, unit.structure_probe))
     return d
 
 
-def _others(channel: str) -> list[str]:
-    return [p for p in ("t1", "t2", "t3", "t4") if p != CHANNEL_PROBES[channel]]
+def _others(unit: Unit, channel: str) -> list[str]:
+    return [p for p in ("t1", "t2", "t3", "t4") if p != unit.channel_probes[channel]]
 
 
 # ------------------------------------------------------------------------------------------ effects
 
-def _library_effect(kind: str, rng, channel: str, probe: str | None = None) -> fx.Effect:
-    others = _others(channel)
-    p = probe or str(rng.choice(others))
+def _library_effect(kind: str, rng, unit: Unit, channel: str) -> fx.Effect:
+    """One library effect on a probe other than the channel's own (where the kind has a probe)."""
+    others = _others(unit, channel)
+    p = str(rng.choice(others))
     if kind == "thermal_lag":
         # at least ~20 min: a shorter lag is a rate (lag - T = -tau dT/dt) to any analysis
         return fx.ThermalLag(p, float(np.exp(rng.uniform(np.log(1200), np.log(5400)))))
@@ -129,7 +136,7 @@ def _library_effect(kind: str, rng, channel: str, probe: str | None = None) -> f
     if kind == "g_sensitivity":
         return fx.GSensitivity(rng.uniform(-1, 1, 3))
     if kind == "scale_factor_temperature":
-        return fx.ScaleFactorTemperature(CHANNEL_PROBES[channel])
+        return fx.ScaleFactorTemperature(unit.channel_probes[channel])   # the coil's own temperature
     if kind == "time_drift":
         return fx.TimeDrift()
     raise ValueError(f"unknown effect kind {kind!r}")
@@ -148,9 +155,8 @@ def _plan_needs(kinds: list[str]) -> dict:
 
 # ------------------------------------------------------------------------------------------ builder
 
-def _build(case_class: str, seed: int, rng, specs: list[ChannelSpec], train_plan: RunPlan,
-           validate_plan: RunPlan, unit_noise: dict | None = None) -> Case:
-    unit = random_unit(rng, unit_noise)
+def _build(case_class: str, seed: int, rng, unit: Unit, specs: list[ChannelSpec], train_plan: RunPlan,
+           validate_plan: RunPlan) -> Case:
     lat = float(rng.uniform(-60, 60))
     meta = {"gyro_id": f"CORPUS-{case_class}-{seed}", "gyro_type": "FOG"}
     train, st_tr, floors = make_run(train_plan, unit, specs, rng, lat, 0, meta)
@@ -158,29 +164,33 @@ def _build(case_class: str, seed: int, rng, specs: list[ChannelSpec], train_plan
     truth = {s.channel: ChannelTruth(s.channel, formula_text(s.declared), s.declared,
                                      [e for e, _ in s.effects], s.verdicts,
                                      [unit.effect_coef[(s.channel, i)] for i in range(len(s.effects))],
-                                     [unit.effect_visibility[(s.channel, i)] for i in range(len(s.effects))])
+                                     [unit.effect_visibility[(s.channel, i)] for i in range(len(s.effects))],
+                                     [unit.effect_distinctness[(s.channel, i)] for i in range(len(s.effects))],
+                                     [unit.effect_lookalikes[(s.channel, i)] for i in range(len(s.effects))])
              for s in specs}
     return Case(case_class, seed, train, validate, truth, st_tr.hidden, st_va.hidden,
-                {s.channel: floors[s.channel] for s in specs})
+                {s.channel: floors[s.channel] for s in specs}, dict(unit.probe_nodes))
 
 
-def _single(case_class: str, seed: int, kinds: list[str], *, channel: str | None = None,
+def _single(case_class: str, seed: int, kinds: list[str] | Callable, *, channel: str | None = None,
             ratio=(5.0, 10.0), train_kw=None, validate_kw=None, verdicts=EXPLAINED,
-            effect_factory: Callable | None = None, unit_noise=None) -> Case:
+            effect_factory: Callable | None = None, unit_noise=None,
+            min_visibility: float = MIN_VISIBILITY) -> Case:
     """A case with one channel under test.  Effects the declared model and the other true effects
     would mostly absorb (visibility < MIN_VISIBILITY) cannot be named by anyone: such a draw is
-    replaced by the next one of the same seed."""
+    replaced by the next one of the same seed (``kinds`` may be drawn too: a callable of the rng)."""
     rng = np.random.default_rng([zlib.crc32(case_class.encode()), seed])
     for _ in range(MAX_DRAWS):
+        unit = random_unit(rng, unit_noise)
         ch = channel or str(rng.choice(["x", "y", "z"]))
         if effect_factory is not None:
-            effs = effect_factory(rng, ch)
+            effs = effect_factory(rng, unit, ch)
         else:
             effs = []
             used_probes: set[str] = set()
-            for k in kinds:
+            for k in (kinds(rng) if callable(kinds) else kinds):
                 for _ in range(20):
-                    e = _library_effect(k, rng, ch)
+                    e = _library_effect(k, rng, unit, ch)
                     if not (set(e.probes) & used_probes) or not e.probes:
                         break
                 used_probes |= set(e.probes)
@@ -188,9 +198,10 @@ def _single(case_class: str, seed: int, kinds: list[str], *, channel: str | None
         needs = _plan_needs([e.kind for e in effs])
         tp = _train_plan(rng, **{**needs, **(train_kw or {})})
         vp = _validate_plan(tp, rng, **(validate_kw or {}))
-        spec = ChannelSpec(ch, _declared(rng, ch), [(e, float(rng.uniform(*ratio))) for e in effs], verdicts)
-        case = _build(case_class, seed, rng, [spec], tp, vp, unit_noise)
-        if all(v >= MIN_VISIBILITY for v in case.truth[ch].visibility):
+        spec = ChannelSpec(ch, _declared(rng, unit, ch), [(e, float(rng.uniform(*ratio))) for e in effs], verdicts)
+        case = _build(case_class, seed, rng, unit, [spec], tp, vp)
+        t = case.truth[ch]
+        if all(v >= min_visibility for v in t.visibility):
             return case
     raise RuntimeError(f"{case_class} seed {seed}: no draw with visible effects in {MAX_DRAWS} tries")
 
@@ -201,8 +212,8 @@ PAIRABLE = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross"
             "time_drift")
 
 
-def _mode_hop(rng, ch):
-    probe = CHANNEL_PROBES[ch]
+def _mode_hop(rng, unit, ch):
+    probe = unit.channel_probes[ch]
     return [fx.ModeHop(probe, float(rng.uniform(0, 30)), float(rng.uniform(0.5, 2.0)))]
 
 
@@ -237,25 +248,27 @@ CLASSES: dict[str, Callable[[int], Case]] = {
         "effect_with_flicker", s, [str(np.random.default_rng(s).choice(PAIRABLE))],
         unit_noise={"arw": (0.002, 0.004), "bi": (0.01, 0.025)}),
     "two_effects": lambda s: _single(
-        "two_effects", s, [str(k) for k in np.random.default_rng([2, s]).choice(PAIRABLE, 2, replace=False)],
+        "two_effects", s, lambda rng: [str(k) for k in rng.choice(PAIRABLE, 2, replace=False)],
         ratio=(4.0, 8.0)),
     "three_effects": lambda s: _single(
-        "three_effects", s, [str(k) for k in np.random.default_rng([3, s]).choice(PAIRABLE, 3, replace=False)],
+        "three_effects", s, lambda rng: [str(k) for k in rng.choice(PAIRABLE, 3, replace=False)],
         ratio=(4.0, 8.0)),
     "gradual_hysteresis": lambda s: _single(
         "gradual_hysteresis", s, [],
-        effect_factory=lambda rng, ch: [fx.Hysteresis(str(rng.choice(["t1", "t2", "t3", "t4"])),
+        effect_factory=lambda rng, unit, ch: [fx.Hysteresis(str(rng.choice(["t1", "t2", "t3", "t4"])),
                                                       float(rng.uniform(3.0, 12.0)))]),
     "long_time_constant": lambda s: _single(
         "long_time_constant", s, [],
-        effect_factory=lambda rng, ch: [fx.ThermalLag(CHANNEL_PROBES[ch], float(rng.uniform(0.3, 0.8)) * TRAIN_S)]),
+        effect_factory=lambda rng, unit, ch: [fx.ThermalLag(unit.channel_probes[ch],
+                                                            float(rng.uniform(0.3, 0.8)) * TRAIN_S)],
+        min_visibility=0.15),   # a lag this slow is partly a function of T: less of it is visible
     # effects from variables no column records: must come out unexplained
     "unrecorded_humidity": lambda s: _single(
         "unrecorded_humidity", s, [], verdicts=UNEXPLAINED, train_kw=dict(humidity=True),
-        effect_factory=lambda rng, ch: [fx.Humidity()]),
+        effect_factory=lambda rng, unit, ch: [fx.Humidity()]),
     "unrecorded_internal_node": lambda s: _single(
         "unrecorded_internal_node", s, [], verdicts=UNEXPLAINED, train_kw=dict(board_load=True),
-        effect_factory=lambda rng, ch: [fx.InternalNode()]),
+        effect_factory=lambda rng, unit, ch: [fx.InternalNode()]),
     "unrecorded_mode_hop": lambda s: _single(
         "unrecorded_mode_hop", s, [], verdicts=UNEXPLAINED, effect_factory=_mode_hop),
 }
@@ -274,7 +287,7 @@ def write_case(case: Case, directory) -> dict:
     write_csv(case.train, d / "train.csv")
     write_csv(case.validate, d / "validate.csv")
     record = {"case_class": case.case_class, "seed": case.seed,
-              "channels": {ch: t.describe() for ch, t in case.truth.items()},
+              "channels": {ch: t.describe() for ch, t in case.truth.items()}, "probe_nodes": case.probe_nodes,
               "noise_floor_dph": case.floors}
     (d / "truth.json").write_text(json.dumps(record, indent=1), encoding="utf-8")
     return record

@@ -36,11 +36,12 @@ class RunState:
     orientation: np.ndarray                   # codes per sample
     table_rate_dps: np.ndarray
     latitude_deg: float
+    probe_nodes: dict[str, str]               # probe name -> the node it is glued on
     hidden: dict[str, np.ndarray] = field(default_factory=dict)   # unrecorded variables
 
-
-def node_of(probe: str) -> str:
-    return ph.PROBE_NODES[probe]
+    def temp(self, probe: str) -> np.ndarray:
+        """True temperature of the node the probe is glued on."""
+        return self.nodes[self.probe_nodes[probe]]
 
 
 def _rate(x: np.ndarray) -> np.ndarray:
@@ -77,7 +78,7 @@ class ThermalLag(Effect):
         super().__init__("thermal_lag", (probe,), {"tau_s": tau_s})
 
     def signal(self, run, channel):
-        t = run.nodes[node_of(self.probes[0])]
+        t = run.temp(self.probes[0])
         return ph.lag(t, self.params["tau_s"]) - t
 
     def oracle(self, ds, hidden, channel):
@@ -90,7 +91,7 @@ class Gradient(Effect):
         super().__init__("gradient", (a, b))
 
     def signal(self, run, channel):
-        return run.nodes[node_of(self.probes[0])] - run.nodes[node_of(self.probes[1])]
+        return run.temp(self.probes[0]) - run.temp(self.probes[1])
 
     def oracle(self, ds, hidden, channel):
         return (_probe(ds, self.probes[0]) - _probe(ds, self.probes[1]))[:, None]
@@ -101,7 +102,7 @@ class Rate(Effect):
         super().__init__("rate", (probe,))
 
     def signal(self, run, channel):
-        return _rate(run.nodes[node_of(self.probes[0])])
+        return _rate(run.temp(self.probes[0]))
 
     def oracle(self, ds, hidden, channel):
         return ph.slope_c_per_min(_probe(ds, self.probes[0]), RATE_WINDOW_S)[:, None]
@@ -112,7 +113,7 @@ class RateSquared(Effect):
         super().__init__("rate_squared", (probe,))
 
     def signal(self, run, channel):
-        return _rate(run.nodes[node_of(self.probes[0])]) ** 2
+        return _rate(run.temp(self.probes[0])) ** 2
 
     def oracle(self, ds, hidden, channel):
         return (ph.slope_c_per_min(_probe(ds, self.probes[0]), RATE_WINDOW_S) ** 2)[:, None]
@@ -123,7 +124,7 @@ class TempRateCross(Effect):
         super().__init__("temp_rate_cross", (probe,))
 
     def signal(self, run, channel):
-        t = run.nodes[node_of(self.probes[0])]
+        t = run.temp(self.probes[0])
         return (t - T0_C) * _rate(t)
 
     def oracle(self, ds, hidden, channel):
@@ -139,7 +140,7 @@ class Hysteresis(Effect):
         super().__init__("hysteresis", (probe,), {"width_c": width_c})
 
     def signal(self, run, channel):
-        return ph.duhem(run.nodes[node_of(self.probes[0])], self.params["width_c"])
+        return ph.duhem(run.temp(self.probes[0]), self.params["width_c"])
 
     def oracle(self, ds, hidden, channel):
         smooth = ph.moving_average(_probe(ds, self.probes[0]), 120.0)
@@ -179,7 +180,7 @@ class ScaleFactorTemperature(Effect):
 
     def signal(self, run, channel):
         w_in = input_rate_dph(run.table_rate_dps, run.orientation, run.latitude_deg, channel)
-        return w_in * (run.nodes[node_of(self.probes[0])] - T0_C)
+        return w_in * (run.temp(self.probes[0]) - T0_C)
 
     def oracle(self, ds, hidden, channel):
         table = np.asarray(ds["table_rate_dps"]) if "table_rate_dps" in ds else np.zeros(len(ds))
@@ -234,7 +235,7 @@ class ModeHop(Effect):
                          explainable=False)
 
     def signal(self, run, channel):
-        t = run.nodes[node_of(self.probes[0])]
+        t = run.temp(self.probes[0])
         return mode_state(t, self.params["threshold_c"], self.params["band_c"])
 
     def oracle(self, ds, hidden, channel):

@@ -16,7 +16,7 @@ import numpy as np
 
 from bench.fit.base import Dataset
 from tests.corpus import physics as ph
-from tests.corpus.effects import Effect, RunState, node_of, since_on
+from tests.corpus.effects import Effect, RunState, since_on
 
 DT = 1.0
 
@@ -51,9 +51,17 @@ class Unit:
     probe_rng_seeds: dict[str, int]
     noise: dict[str, float]                            # arw, bi, rrw
     bias_coef: dict[str, dict[str, float]]             # channel -> term -> deg/h per unit
+    probe_nodes: dict[str, str]                        # probe -> node it is glued on
+    channel_probes: dict[str, str]                     # channel -> the probe on its coil
+    structure_probe: str                               # the probe on the base plate or the case
     effect_coef: dict[tuple[str, int], float] = field(default_factory=dict)
     # share of each effect's 100-s variation on TRAIN that the declared model cannot absorb
     effect_visibility: dict[tuple[str, int], float] = field(default_factory=dict)
+    # the smallest error (in noise floors, 100-s means, TRAIN) left when one other-kind or
+    # other-probe library regressor replaces the effect: how well a right answer can be told apart
+    effect_distinctness: dict[tuple[str, int], float] = field(default_factory=dict)
+    # the (kind, probes) that imitate the effect within LOOKALIKE_FLOORS: equally right answers
+    effect_lookalikes: dict[tuple[str, int], list] = field(default_factory=dict)
 
 
 def formula_text(declared: list[tuple]) -> str:
@@ -66,7 +74,7 @@ def formula_text(declared: list[tuple]) -> str:
     return " + ".join(parts)
 
 
-def declared_columns(declared: list[tuple], temps: Callable[[str], np.ndarray]) -> np.ndarray:
+def declared_columns(declared: list[tuple], temps: Callable[[str], np.ndarray], n: int | None = None) -> np.ndarray:
     """(n, k): the declared terms evaluated on temperatures (no intercept)."""
     cols = []
     for term in declared:
@@ -74,7 +82,7 @@ def declared_columns(declared: list[tuple], temps: Callable[[str], np.ndarray]) 
             cols.append(temps(term[1]) ** term[2])
         else:
             cols.append(temps(term[1]) - temps(term[2]))
-    return np.column_stack(cols) if cols else np.zeros((len(temps("t1")), 0))
+    return np.column_stack(cols) if cols else np.zeros((n or 0, 0))
 
 
 def declared_probes(declared: list[tuple]) -> list[str]:
@@ -97,8 +105,13 @@ def random_unit(rng: np.random.Generator, noise_scale: dict[str, tuple[float, fl
                     "c2": float(rng.choice([-1, 1]) * rng.uniform(1e-4, 5e-4)),
                     "c3": float(rng.choice([-1, 1]) * rng.uniform(1e-6, 6e-6)),
                     "grad": float(rng.choice([-1, 1]) * rng.uniform(0.02, 0.08))}
-    seeds = {p: int(rng.integers(2 ** 31)) for p in ph.PROBE_NODES}
-    return Unit(ph.random_network(rng), seeds, noise, coef)
+    seeds = {p: int(rng.integers(2 ** 31)) for p in ("t1", "t2", "t3", "t4")}
+    # probe placement: a random probe on each coil, the fourth on the base plate or on the case
+    names = [str(p) for p in rng.permutation(["t1", "t2", "t3", "t4"])]
+    structure_node = "base" if rng.random() < 0.6 else "case"
+    probe_nodes = {names[0]: "coil_x", names[1]: "coil_y", names[2]: "coil_z", names[3]: structure_node}
+    channel_probes = {"x": names[0], "y": names[1], "z": names[2]}
+    return Unit(ph.random_network(rng), seeds, noise, coef, probe_nodes, channel_probes, names[3])
 
 
 def simulate_state(plan: RunPlan, unit: Unit, rng: np.random.Generator, latitude_deg: float) -> RunState:
@@ -151,12 +164,12 @@ def simulate_state(plan: RunPlan, unit: Unit, rng: np.random.Generator, latitude
         order = rng.permutation(len(plan.table_rates_dps))
         k = (np.arange(n) // dwell) % len(order)
         table = np.asarray(plan.table_rates_dps, dtype=float)[order][k]
-    return RunState(t, nodes, power, t_on, orientation, table, latitude_deg, hidden)
+    return RunState(t, nodes, power, t_on, orientation, table, latitude_deg, dict(unit.probe_nodes), hidden)
 
 
 def probe_readings(state: RunState, unit: Unit, run_index: int) -> dict[str, np.ndarray]:
     out = {}
-    for p, node in ph.PROBE_NODES.items():
+    for p, node in sorted(unit.probe_nodes.items()):
         # offsets and glue lags belong to the unit (same draw on both runs); read noise is per run
         unit_rng = np.random.default_rng(unit.probe_rng_seeds[p])
         glue, offset, sigma = unit_rng.uniform(1.0, 4.0), unit_rng.uniform(-0.15, 0.15), unit_rng.uniform(0.003, 0.015)
@@ -174,7 +187,7 @@ def thermal_bias(channel: str, declared: list[tuple], unit: Unit, state: RunStat
     b = c["c0"] + c["c1"] * u + c["c2"] * u ** 2 + c["c3"] * u ** 3
     for term in declared:
         if term[0] == "diff":
-            b = b + c["grad"] * (state.nodes[node_of(term[1])] - state.nodes[node_of(term[2])])
+            b = b + c["grad"] * (state.temp(term[1]) - state.temp(term[2]))
     return b
 
 
@@ -182,7 +195,7 @@ def _visible_std(signal: np.ndarray, declared: list[tuple], state: RunState, ok:
                  others: list[np.ndarray] = ()) -> float:
     """Std of the 100-s means of ``signal`` left after a least-squares fit of the declared terms
     (evaluated on the true node temperatures), an intercept and the ``others`` signals."""
-    X = np.column_stack([np.ones(len(signal)), declared_columns(declared, lambda p: state.nodes[node_of(p)] - 25.0),
+    X = np.column_stack([np.ones(len(signal)), declared_columns(declared, lambda p: state.temp(p) - 25.0, len(signal)),
                          *others])
     per = int(100 / DT)
     m = (len(signal) // per) * per
@@ -191,6 +204,38 @@ def _visible_std(signal: np.ndarray, declared: list[tuple], state: RunState, ok:
     Xb = X[:m].reshape(-1, per, X.shape[1]).mean(axis=1)[okb]
     beta, *_ = np.linalg.lstsq(Xb, sb, rcond=None)
     return float(np.std(sb - Xb @ beta))
+
+
+ALTERNATIVE_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross")
+ALTERNATIVE_LAGS_S = (600.0, 1800.0, 5400.0)
+LOOKALIKE_FLOORS = 0.5      # naming it instead leaves under half a noise floor of error: no data tells them apart
+
+
+def alternatives(eff: Effect, state: RunState) -> list[tuple[str, tuple[str, ...], np.ndarray]]:
+    """(kind, probes, signal) of the temperature-driven library effects an analysis could name
+    instead of ``eff`` (every kind on every probe or pair, a few lags), leaving out ``eff``'s own kind
+    on its own probes."""
+    if eff.kind not in ALTERNATIVE_KINDS or not eff.explainable:
+        return []
+    probes = sorted(state.probe_nodes)
+    out = []
+
+    def add(kind: str, ps: tuple[str, ...], signal: np.ndarray) -> None:
+        if not (kind == eff.kind and set(ps) == set(eff.probes)):
+            out.append((kind, ps, signal))
+
+    for p in probes:
+        t = state.temp(p)
+        r = np.gradient(t) * 60.0
+        add("rate", (p,), r)
+        add("rate_squared", (p,), r ** 2)
+        add("temp_rate_cross", (p,), (t - 25.0) * r)
+        for tau in ALTERNATIVE_LAGS_S:
+            add("thermal_lag", (p,), ph.lag(t, tau) - t)
+    for i, a in enumerate(probes):
+        for b in probes[i + 1:]:
+            add("gradient", (a, b), state.temp(a) - state.temp(b))
+    return out
 
 
 def block_std100(x: np.ndarray) -> float:
@@ -216,7 +261,7 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
         noise = ph.gyro_noise(n, rng, unit.noise["arw"], unit.noise["bi"], unit.noise["rrw"], DT)
         floors[ch] = block_std100(noise)
         spec = tested.get(ch)
-        declared = spec.declared if spec else [("pow", ph.CHANNEL_PROBES[ch], k) for k in (1, 2, 3)]
+        declared = spec.declared if spec else [("pow", unit.channel_probes[ch], k) for k in (1, 2, 3)]
         bias = thermal_bias(ch, declared, unit, state)
         signals = [eff.signal(state, ch) for eff, _ in (spec.effects if spec else [])]
         for i, (eff, ratio) in enumerate(spec.effects if spec else []):
@@ -228,6 +273,13 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
                 unit.effect_coef[key] = sign * ratio * floors[ch] / max(size, 1e-12)
                 own = _visible_std(sig, declared, state, on, [s for j, s in enumerate(signals) if j != i])
                 unit.effect_visibility[key] = own / max(_visible_std(sig, [], state, on), 1e-12)
+                others = [s for j, s in enumerate(signals) if j != i]
+                errors: dict[tuple[str, tuple[str, ...]], float] = {}
+                for kind, ps, alt in alternatives(eff, state):
+                    err = abs(unit.effect_coef[key]) * _visible_std(sig, declared, state, on, others + [alt])
+                    errors[(kind, ps)] = min(errors.get((kind, ps), np.inf), err / floors[ch])
+                unit.effect_distinctness[key] = min(errors.values(), default=float("inf"))
+                unit.effect_lookalikes[key] = sorted(k for k, e in errors.items() if e < LOOKALIKE_FLOORS)
             bias = bias + unit.effect_coef[key] * sig
             if not eff.explainable:
                 state.hidden[eff.kind] = sig        # what the referee may use; no column records it
@@ -244,5 +296,5 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
     if plan.table_rates_dps:
         cols["table_rate_dps"] = state.table_rate_dps.copy()
     md = {"latitude_deg": repr(float(latitude_deg)), "sample_period_s": repr(DT),
-          "channel_probes": ",".join(f"{c}={p}" for c, p in ph.CHANNEL_PROBES.items()), **meta}
+          "channel_probes": ",".join(f"{c}={p}" for c, p in sorted(unit.channel_probes.items())), **meta}
     return Dataset(cols, md), state, floors

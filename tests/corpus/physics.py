@@ -3,10 +3,10 @@
 
 * Chamber: a set-point program (soaks and ramps) followed by the air through a rate limit and a
   first-order lag, with a small control ripple.
-* Coupled thermal network: air -> case -> three sensing coils and a base plate, plus an electronics
-  board that can self-heat.  Node temperatures obey C dT/dt = G (T_neighbour - T) (+ heat input);
+* Coupled thermal network: air -> case -> three sensing coils and a base plate (which also leaks
+  to the room through the table shaft), plus an electronics board that can self-heat.  Node temperatures obey C dT/dt = G (T_neighbour - T) (+ heat input);
   integrated exactly (zero-order hold) by diagonalising the system and filtering each mode.
-* DS18B20 probes glued on nodes: glue lag of a few seconds, constant offset, read noise, 0.0625 C
+* DS18B20 probes glued on nodes (placement drawn per unit): glue lag of a few seconds, constant offset, read noise, 0.0625 C
   quantisation.
 * Gyro noise: angle random walk (white rate noise), bias instability (1/f, flicker) and rate random
   walk, at the Allan levels of IEEE 952 (ARW N: sigma = N / sqrt(tau); flicker floor 0.664 B; RRW K:
@@ -22,8 +22,6 @@ from scipy.signal import lfilter
 EARTH_RATE_DPH = 7.2921158553e-5 * 180.0 / np.pi * 3600.0
 QUANTUM_C = 0.0625
 NODES = ("case", "coil_x", "coil_y", "coil_z", "base", "board")
-PROBE_NODES = {"t1": "coil_x", "t2": "coil_y", "t3": "coil_z", "t4": "base"}
-CHANNEL_PROBES = {"x": "t1", "y": "t2", "z": "t3"}
 _DIRECTIONS = {"E": (1.0, 0.0, 0.0), "W": (-1.0, 0.0, 0.0), "N": (0.0, 1.0, 0.0), "S": (0.0, -1.0, 0.0),
                "U": (0.0, 0.0, 1.0), "D": (0.0, 0.0, -1.0)}
 
@@ -137,6 +135,9 @@ def random_network(rng: np.random.Generator) -> dict[str, float]:
         "case_base": 1.0 / rng.uniform(600, 1800),
         "coil_base": 1.0 / rng.uniform(3000, 8000),
         "board_case": 1.0 / rng.uniform(600, 1500),
+        # the table shaft through the chamber wall: the base plate also leaks to the room
+        "base_room": 1.0 / rng.uniform(1500, 5000),
+        "room_c": rng.uniform(20.0, 26.0),
     }
     for ch, k in zip("xyz", order):
         p[f"coil_{ch}_case"] = 1.0 / rng.uniform(*bands[k])
@@ -161,8 +162,10 @@ def network_temperatures(air: np.ndarray, net: dict[str, float], heat_board: np.
 
     A[idx["case"], idx["case"]] -= net["case_air"]
     B[idx["case"]] += net["case_air"]
-    A[idx["base"], idx["base"]] -= net["base_air"]
+    A[idx["base"], idx["base"]] -= net["base_air"] + net.get("base_room", 0.0)
     B[idx["base"]] += net["base_air"]
+    room = np.zeros(n)
+    room[idx["base"]] = net.get("base_room", 0.0)
     link("case", "base", net["case_base"])
     link("board", "case", net["board_case"])
     for ch in "xyz":
@@ -171,8 +174,8 @@ def network_temperatures(air: np.ndarray, net: dict[str, float], heat_board: np.
     # dT/dt = A T + B air + e_board q ; A symmetric -> real modes
     lam, V = np.linalg.eigh(A)
     heat = np.zeros(len(air)) if heat_board is None else heat_board
-    U = np.column_stack([air, heat])                          # inputs
-    Bfull = np.column_stack([B, np.eye(n)[idx["board"]]])     # (n, 2)
+    U = np.column_stack([air, heat, np.full(len(air), net.get("room_c", 25.0))])    # inputs
+    Bfull = np.column_stack([B, np.eye(n)[idx["board"]], room])                     # (n, 3)
     # equilibrium for the first input: T0 = -A^-1 B u0
     T0 = -np.linalg.solve(A, Bfull @ U[0])
     Z0 = V.T @ T0

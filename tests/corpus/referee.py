@@ -2,9 +2,11 @@
 
 Per channel under test:
 
-* kinds and probes: the set of (kind, probes) the product added equals the true explainable effects
-  (read through ``added_effects``, the one adapter to the report's schema); for a complete model
-  nothing may be added; for an effect no column records, kinds are not scored;
+* kinds and probes: the (kind, probes) the product added match the true effects one to one
+  (read through ``added_effects``, the one adapter to the report's schema); a look-alike that the
+  data cannot tell from the true effect (under half a noise floor apart, see the generator) counts
+  as right; for a complete model nothing may be added; for an effect no column records, kinds are
+  not scored;
 * verdict: one of the truth's honest verdicts;
 * error: the "after" validation std of 100-s means within ``ORACLE_TOLERANCE`` x that of the oracle
   (declared terms + the true effects in their true form, least squares on TRAIN), and never above
@@ -15,6 +17,7 @@ Per channel under test:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import permutations
 from typing import Any
 
 import numpy as np
@@ -164,7 +167,7 @@ def score_channel(case: Case, channel: str, channel_report: dict[str, Any]) -> C
     got = added_effects(channel_report)
     want = [(e.kind, frozenset(e.probes)) for e in truth.effects if e.explainable]
     explainable = all(e.explainable for e in truth.effects)
-    if explainable and sorted(got, key=str) != sorted(want, key=str):
+    if explainable and not kinds_match(got, truth):
         reasons.append("kinds: got " + _fmt(got) + ", want " + _fmt(want))
     verdict = channel_report.get("verdict")
     if verdict not in truth.verdicts:
@@ -188,6 +191,18 @@ def score_channel(case: Case, channel: str, channel_report: dict[str, Any]) -> C
                "added": _fmt(got), "truth": _fmt(want + [(e.kind, frozenset(e.probes)) for e in truth.effects
                                                           if not e.explainable])}
     return ChannelScore(case.case_class, case.seed, channel, not reasons, reasons, numbers)
+
+
+def kinds_match(got: list[tuple[str, frozenset[str]]], truth: ChannelTruth) -> bool:
+    """One added effect per true effect, each the true (kind, probes) or one of its look-alikes
+    (regressors the data cannot tell from it; probes ignored for probe-free kinds)."""
+    accept = []
+    for e, look in zip(truth.effects, truth.lookalikes):
+        names = {(e.kind, frozenset(e.probes))} | {(k, frozenset(p)) for k, p in look}
+        accept.append({(k, frozenset() if k in PROBE_FREE_KINDS else p) for k, p in names})
+    if len(got) != len(accept):
+        return False
+    return any(all(g in accept[j] for g, j in zip(got, perm)) for perm in permutations(range(len(accept))))
 
 
 def _fmt(effects: list[tuple[str, frozenset[str]]]) -> str:
