@@ -30,7 +30,7 @@ def test_network_starts_in_equilibrium_and_follows_a_soak():
 
 def test_probes_are_ds18b20_quantised():
     rng = np.random.default_rng(1)
-    x = ph.read_probe(np.linspace(0, 10, 5000), rng)
+    x = ph.read_probe(np.linspace(0, 10, 5000), 2.0, 0.1, 0.01, rng)
     assert np.allclose(x / ph.QUANTUM_C, np.round(x / ph.QUANTUM_C))
 
 

@@ -174,8 +174,7 @@ def probe_readings(state: RunState, unit: Unit, run_index: int) -> dict[str, np.
         unit_rng = np.random.default_rng(unit.probe_rng_seeds[p])
         glue, offset, sigma = unit_rng.uniform(1.0, 4.0), unit_rng.uniform(-0.15, 0.15), unit_rng.uniform(0.003, 0.015)
         run_rng = np.random.default_rng([unit.probe_rng_seeds[p], run_index])
-        x = ph.lag(state.nodes[node], glue, DT) + offset + run_rng.normal(0, sigma, len(state.time_s))
-        out[p] = np.round(x / ph.QUANTUM_C) * ph.QUANTUM_C
+        out[p] = ph.read_probe(state.nodes[node], glue, offset, sigma, run_rng, DT)
     return out
 
 

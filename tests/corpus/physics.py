@@ -191,13 +191,11 @@ def network_temperatures(air: np.ndarray, net: dict[str, float], heat_board: np.
     return {name: T[i] for name, i in idx.items()}
 
 
-def read_probe(true_c: np.ndarray, rng: np.random.Generator, dt: float = 1.0,
-               noise_c: tuple[float, float] = (0.003, 0.015)) -> np.ndarray:
-    """A DS18B20 glued on a node: glue lag 1-4 s, constant offset, read noise, 0.0625 C steps."""
-    glued = lag(true_c, float(rng.uniform(1.0, 4.0)), dt)
-    offset = float(rng.uniform(-0.15, 0.15))
-    noisy = glued + offset + rng.normal(0.0, float(rng.uniform(*noise_c)), len(true_c))
-    return np.round(noisy / QUANTUM_C) * QUANTUM_C
+def read_probe(true_c: np.ndarray, glue_s: float, offset_c: float, noise_c: float, rng: np.random.Generator,
+               dt: float = 1.0) -> np.ndarray:
+    """A DS18B20 glued on a node: glue lag, constant offset, read noise, 0.0625 C steps."""
+    x = lag(true_c, glue_s, dt) + offset_c + rng.normal(0.0, noise_c, len(true_c))
+    return np.round(x / QUANTUM_C) * QUANTUM_C
 
 
 # ---------------------------------------------------------------------------------------- gyro noise
