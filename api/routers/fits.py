@@ -22,7 +22,7 @@ from api.problems import Problem, problem_codes
 from api.schemas import ID_PATTERN, GyroPath, RowId, CloseLoopCreate, FitCreate
 from api.views import iso
 from bench.errors import BenchError
-from bench.fit.base import Dataset, FitResult
+from bench.fit.base import Dataset, FitResult, channel_probe_map
 from bench.storage import queries
 from bench.storage.db import Database
 from bench.storage.models import Analysis, Fit, Gyro, Run, utcnow
@@ -101,7 +101,7 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
         offset += float(d.columns["time_s"][-1]) + RUN_GAP_S
     meta = dict(datasets[0].meta)
     meta["run_id"] = ",".join(str(r) for r in run_ids)
-    maps = {rid: d.meta.get("channel_probes") or {} for rid, d in zip(run_ids, datasets)}
+    maps = {rid: channel_probe_map(d) for rid, d in zip(run_ids, datasets)}
     merged_map: dict[str, str] = {}
     for rid, mapping in maps.items():
         for ch, probe in mapping.items():

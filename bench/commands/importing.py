@@ -135,7 +135,7 @@ def _import(db, src: _Source, gyro_id: str, *, source: str, bench_name: str | No
                            "note": f"frames re-encoded from the CSV values ({kind} layout)"}}
     if latitude is not None:
         snapshot["latitude_deg"] = latitude
-    mapping = meta.get("channel_probes") or {}
+    mapping = meta.get("channel_probes") or {}      # the CSV reader gives the parsed dict
     for ch, probe in mapping.items():
         if ch not in gyro_channels or f"temp_{probe}" not in header:
             raise DataFormatError(f"metadata channel_probes: {ch}={probe} names a "

@@ -54,7 +54,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from bench.errors import DataFormatError
 from bench.fit import prep
-from bench.fit.base import EARTH_RATE_DPH, Dataset, FitResult, channel_probe
+from bench.fit.base import EARTH_RATE_DPH, Dataset, FitResult, channel_probe, channel_probe_map
 from bench.fit.formula import (CompiledFormula, compile_formula, compile_terms, compiled_from_recipe,
                                signal_key, uses_channel_probe)
 from bench.fit.linear import lstsq
@@ -334,7 +334,7 @@ def _own_probe(ds: Dataset, channel: str, probe: str | None) -> tuple[str, str]:
     (``bench.fit.base.channel_probe``: the data's ``channel_probes`` map, else the default)."""
     if probe:
         return _check_probe(ds, probe), "probe option"
-    mapped = channel in (ds.meta.get("channel_probes") or {})
+    mapped = channel in channel_probe_map(ds)
     return channel_probe(ds, channel), "channel_probes metadata" if mapped else "default (no channel_probes entry)"
 
 
