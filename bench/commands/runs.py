@@ -247,8 +247,8 @@ def _attach_sim(path: str):
         raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
 
 
-def _sim_launch(sim, speed: float, scenario: str, chamber_transport: str) -> dict[str, Any]:
-    return {"speed": speed, "scenario": scenario, "data_rate_hz": sim.data_rate_hz,
+def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
+    return {"speed": speed, "scenario": scenario, "seed": sim.seed, "data_rate_hz": sim.data_rate_hz,
             "clock": sim.clock.to_json(), "chamber_transport": chamber_transport}
 
 
@@ -258,8 +258,11 @@ def run_command(
     procedure: str = typer.Argument(..., help="eight_position, thermal_ramp, rate_cycle, hrg_calibration, fog_startup"),
     gyro: str = typer.Option(..., "--gyro", help="ID of the gyro under test"),
     sim: bool = typer.Option(False, "--sim", help="start a simulated bench in this process"),
-    speed: float = typer.Option(3600.0, "--speed", help="simulated bench: bench seconds per wall second"),
+    speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per "
+                              "wall second, or 'max' (as fast as the host can; the data are the same)"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench: scenario name or JSON file"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="simulated bench: noise seed (default: the "
+                                       "scenario's); a seeded bench starts at a fixed bench instant"),
     data_rate: Optional[int] = typer.Option(None, "--data-rate", help="simulated gyro data rate, Hz (bench time)"),
     chamber_transport: str = typer.Option("modbus_tcp", "--chamber-transport",
                                           help="simulated bench: modbus_tcp or modbus_rtu (RTU over TCP)"),
@@ -275,7 +278,7 @@ def run_command(
 ) -> None:
     """Run a procedure on the bench (or the simulated bench) and store everything."""
     import procedures
-    from bench.clock import RealClock, make_clock
+    from bench.clock import RealClock, parse_speed
     from bench.engine import plan_summary
     from bench.engine.factory import engine_config_for
     from bench.engine.sqlstore import new_run
@@ -290,15 +293,18 @@ def run_command(
         fail(f"--chamber-transport {chamber_transport!r}: use modbus_tcp or modbus_rtu")
     bench = None
     if sim:
-        if speed <= 0:
-            fail(f"--speed must be > 0, got {speed:g}")
+        try:
+            pace = parse_speed(speed)
+        except ValueError as exc:
+            fail(str(exc))
         from bench.config import BenchConfig
-        from bench.sim.bench import SimulatedBench
+        from bench.sim.bench import SimulatedBench, lockstep_clock
 
+        lockstep = lockstep_clock(pace, seed)
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
-        plan_summary(plan, BenchConfig(), engine_config_for(make_clock(speed)))
-        bench = SimulatedBench(speed=speed, scenario=scenario, data_rate_hz=data_rate).start()
+        plan_summary(plan, BenchConfig(), engine_config_for(lockstep))
+        bench = SimulatedBench(clock=lockstep, scenario=scenario, data_rate_hz=data_rate, seed=seed).start()
         config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
     elif sim_endpoints:
         config, clock = _attach_sim(sim_endpoints)
@@ -309,7 +315,7 @@ def run_command(
         summary = plan_summary(plan, config, engine_config)     # PlanError here: nothing created, nothing moved
         db = _open_db(db_url)
         launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
-                  "sim": _sim_launch(bench, speed, scenario, chamber_transport) if bench else None,
+                  "sim": _sim_launch(bench, pace, scenario, chamber_transport) if bench else None,
                   "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None}
         run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
                          config_snapshot=config.model_dump(mode="json"), gyro_id=gyro, bench_name=config.name,
@@ -318,8 +324,9 @@ def run_command(
         sys.stdout.flush()
         typer.echo(f"{module.NAME} on gyro {gyro}: {summary['n_steps']} steps, about "
                    f"{summary['total_bench_h']:.2f} h of bench time"
-                   + (f" (simulated bench x{speed:g}, about {summary['total_bench_s'] / speed:.0f} s wall plus overhead)"
-                      if bench else ""), err=True)
+                   + ((f" (simulated bench in lockstep, at most x{pace:g}: at least "
+                       f"{summary['total_bench_s'] / pace:.0f} s wall)" if pace else
+                       " (simulated bench in lockstep, as fast as the host can)") if bench else ""), err=True)
         status = _execute(db, run_id, config, clock, engine_config, plan=plan, show_progress=not no_progress,
                           label=f"run {run_id} {module.NAME}")
         _finish(db, run_id, status, as_json)

@@ -7,6 +7,12 @@ and timestamped with the bench clock when taken off the line: the last frame of 
 chunk gets ``clock.now()``, earlier frames of the same chunk are back-dated by the nominal
 frame period ``1 / data_rate_hz`` (they left the device one period apart).
 
+On a lockstep clock (the simulated bench, ``bench.clock.LockstepClock``) the link registers as a
+receiver: at each new bench instant it waits until it has read every byte the simulator reports
+having written for that instant (same connection), then decodes them all at once, the last frame
+stamped with the instant and earlier ones back-dated by the frame period, so the stamps do not
+depend on how the host happened to chunk the bytes.
+
 The control loop calls ``drain()``, which never blocks.  Frames wait in a bounded but large
 queue (``queue_limit``); if the consumer falls that far behind, the oldest frames are dropped
 and counted in ``queue_overflows``.
@@ -67,17 +73,29 @@ class GyroSerialLink:
         self._reply_lock = threading.Lock()
         self._capturing_replies = False
         self.last_error: str | None = None
+        self._lockstep = bool(getattr(clock, "lockstep", False))
+        self._rx_cond = threading.Condition()
+        self._rx_pending = bytearray()       # lockstep: bytes read but not yet decoded
+        self._rx_bytes = 0                   # bytes read on the current connection
+        self._local_addr: tuple | None = None
+        self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
+        self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         if self._thread is not None:
             return
         self._port = self._open()
+        if self._lockstep:
+            self.clock.receive("gyro_link", self._receive_instant)
+            self.clock.serve_now()
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="gyro-link", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
+        if self._lockstep:
+            self.clock.forget("gyro_link")
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
@@ -116,8 +134,14 @@ class GyroSerialLink:
     # ------------------------------------------------------------------ port handling
     def _open(self) -> serial.SerialBase:
         try:
-            return serial.serial_for_url(self.config.url, baudrate=self.config.baudrate,
+            port = serial.serial_for_url(self.config.url, baudrate=self.config.baudrate,
                                          timeout=self.read_timeout_s, write_timeout=2.0)
+            sock = getattr(port, "_socket", None)
+            with self._rx_cond:
+                self._rx_bytes = 0
+                self._rx_pending.clear()
+                self._local_addr = tuple(sock.getsockname()[:2]) if sock is not None else None
+            return port
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkDown(f"gyro serial link {self.config.url!r}: cannot open: {exc}") from None
 
@@ -137,7 +161,15 @@ class GyroSerialLink:
                 self._reconnect_loop(self.clock.now())
                 continue
             try:
-                data = port.read(65536)
+                # one byte (or the timeout), then whatever else is waiting: never sit out the
+                # timeout with bytes in hand
+                data = port.read(1)
+                if data:
+                    port.timeout = 0           # non-blocking: take what is there now
+                    try:
+                        data += port.read(65536)
+                    finally:
+                        port.timeout = self.read_timeout_s
             except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
                 # AttributeError/TypeError: pyserial's socket handler after a concurrent close
                 if self._stop.is_set():
@@ -170,7 +202,30 @@ class GyroSerialLink:
                 self._reply_buf += data
                 if len(self._reply_buf) > 1 << 20:
                     del self._reply_buf[:-4096]
-        frames = self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz)
+        if self._lockstep:
+            with self._rx_cond:
+                self._rx_pending += data
+                self._rx_bytes += len(data)
+                self._rx_cond.notify_all()
+            return
+        self._enqueue(self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz))
+
+    def _receive_instant(self, t: float, reports: dict) -> None:
+        """Lockstep receiver: take in every byte the simulator wrote up to bench time ``t``."""
+        sent = reports.get("gyro") or {}
+        with self._rx_cond:
+            same_line = (self._port is not None and sent.get("peer") is not None
+                         and tuple(sent["peer"]) == self._local_addr)
+            if same_line and not self._rx_cond.wait_for(lambda: self._rx_bytes >= sent["bytes"],
+                                                        self.receive_wait_s):
+                self.receive_timeouts += 1
+                self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
+                                   f"not received within {self.receive_wait_s:g} s")
+            data, self._rx_pending = bytes(self._rx_pending), bytearray()
+        if data:
+            self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
+
+    def _enqueue(self, frames: list[GyroFrame]) -> None:
         if not frames:
             return
         with self._queue_lock:

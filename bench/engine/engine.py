@@ -294,7 +294,7 @@ class Engine:
         deadline = ex.deadline(now)
         if deadline is not None and not ex.held:
             wake = min(wake, deadline)
-        wake = min(wake, self.next_checkpoint)
+        wake = min(wake, self.next_checkpoint, self.acq.next_due())
         self.clock.sleep(max(MIN_SLEEP_S, wake - self.clock.now()))
 
     # ---- service: data, control, suspension ---------------------------------------------------
