@@ -151,6 +151,7 @@ class LockstepClock:
         self._hold: float | None = None
         self._held = False
         self._wall_mark = time.monotonic()
+        self.fixed_outage_s: float | None = None
         self.instants = 0
         self.wall_cost_s: dict[str, float] = {}     # wall seconds spent serving / receiving, by name
         self.last_reports: dict[str, dict[str, Any]] = {}
@@ -197,6 +198,21 @@ class LockstepClock:
             if t == self._t and self.instants == 0:
                 self._serve(t)
             return self._t
+
+    def jump_to(self, t: float) -> None:
+        """Set the bench time without pacing, then serve it: restoring a checkpointed bench (which may
+        go back to the checkpoint's instant) and letting an outage pass in one step.  Not for runs."""
+        with self._lock:
+            self._t = float(t)
+            self._wall_mark = time.monotonic()
+            self._serve(self._t)
+
+    def outage_bench_s(self, wall_s: float) -> float:
+        """Bench seconds an outage of ``wall_s`` wall seconds lasts: ``fixed_outage_s`` when set (``bench
+        resume --outage``), else at the pace limit (x3600 when unpaced, the default pace)."""
+        if self.fixed_outage_s is not None:
+            return self.fixed_outage_s
+        return max(0.0, wall_s) * (self.pace or 3600.0)
 
     def serve_now(self) -> None:
         """Serve the current instant again (a participant registered after the clock last moved)."""

@@ -1,6 +1,8 @@
 """kill -9 of ``bench run --sim`` in the middle of a ramp, then ``bench resume``: the run completes,
-every frame committed before the kill is still there unchanged, no frame index is used twice, and
-the interruption is a recorded gap."""
+every frame committed before the kill is still there unchanged, no frame index is used twice, the
+interruption is a recorded gap, and the simulated bench continues from its checkpointed physical
+state: chamber and probe temperatures do not jump across the outage (which lasts a stated 120 bench
+seconds, so nothing here depends on how long the host took to restart)."""
 from __future__ import annotations
 
 import json
@@ -18,6 +20,7 @@ from bench.storage.models import FrameChunk, Gap, Run, Segment, Step
 from tests.test_runs_support import cli, last_json
 
 ROOT = Path(__file__).resolve().parents[1]
+OUTAGE_S = 120.0
 PARAMS = ["start_c=30", "soak_h=0.02", "warmup_min=1", "rate_c_per_min=1", "end_c=18", "final_hold_min=1"]
 
 
@@ -41,6 +44,25 @@ def _wait_mid_ramp(db, rid: int, proc: subprocess.Popen, timeout_s: float = 60.0
             return
         time.sleep(0.05)
     raise AssertionError("the run never reached the middle of its ramp")
+
+
+def _assert_continuous(db, rid: int, gap) -> None:
+    """Across the outage the chamber air follows its 1 C/min ramp (at most ~2 C in 120 s plus the
+    checkpoint's lag), and the probes on the gyro, with their thermal lag, move less: no jump back to
+    room temperature (23 C) or to a fresh chamber."""
+    from bench.storage.models import ProbeReadingRow, Telemetry
+
+    with db.session() as s:
+        pv = s.execute(select(Telemetry.t, Telemetry.chamber_pv).where(
+            Telemetry.run_id == rid, Telemetry.device == "chamber").order_by(Telemetry.t)).all()
+        probes = s.execute(select(ProbeReadingRow.t, ProbeReadingRow.celsius).where(
+            ProbeReadingRow.run_id == rid, ProbeReadingRow.name == "t1").order_by(ProbeReadingRow.t)).all()
+    for what, rows, tol in (("chamber PV", pv, 3.5), ("probe t1", probes, 2.5)):
+        before = [v for t, v in rows if t <= gap.t_from]
+        after = [v for t, v in rows if t >= gap.t_to]
+        assert before and after, what
+        assert abs(after[0] - before[-1]) < tol, (what, before[-3:], after[:3])
+        assert 17.0 < after[0] < 30.5, (what, after[0])        # inside the ramp's 30 -> 18 C span
 
 
 def test_kill_mid_ramp_then_resume(tmp_path):
@@ -71,7 +93,7 @@ def test_kill_mid_ramp_then_resume(tmp_path):
         status_after_kill = s.get(Run, rid).status
     assert status_after_kill == "running"       # nobody could record the end: the process died
 
-    code, out, err = cli(["resume", str(rid), "--db", url, "--json", "--no-progress"])
+    code, out, err = cli(["resume", str(rid), "--db", url, "--json", "--no-progress", "--outage", str(OUTAGE_S)])
     doc = last_json(out)
     assert code == 0 and doc["status"] == "completed", (doc, err[-3000:])
 
@@ -94,6 +116,7 @@ def test_kill_mid_ramp_then_resume(tmp_path):
     ramp_pieces = [sg for sg in segs if sg.labels["phase"] == "ramp"]
     assert len(ramp_pieces) == 2 and [p.labels["piece"] for p in ramp_pieces] == [0, 1]
     assert ramp_pieces[0].t_end <= interrupted[0].t_to <= ramp_pieces[1].t_start + 1e-6
+    _assert_continuous(db, rid, interrupted[0])
     code, out, _ = cli(["runs", "show", str(rid), "--json", "--db", url])
     show = json.loads(out)
     assert show["status"] == "completed" and any(g["reason"] == "engine interrupted" for g in show["gaps"])

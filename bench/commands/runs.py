@@ -174,7 +174,8 @@ def _heartbeat_loop(store, run_id: int, owner: str, engine, stop: threading.Even
             pass
 
 
-def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_progress: bool, label: str) -> str:
+def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_progress: bool, label: str,
+             bench_state=None) -> str:
     """Run (``plan`` given) or resume ``run_id`` on the real drivers; returns the engine's final status."""
     from bench.engine import Engine, QueueControl
     from bench.engine.factory import build_devices, close_devices, make_fit_hook
@@ -186,7 +187,7 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
     devices = build_devices(config, clock)
     control = QueueControl()
     engine = Engine(devices, store, clock, config, control, engine_config,
-                    make_fit_hook(db, store, latitude_deg=config.latitude_deg))
+                    make_fit_hook(db, store, latitude_deg=config.latitude_deg), bench_state=bench_state)
     stop = threading.Event()
     store.heartbeat(run_id, owner)
     threads = [threading.Thread(target=_heartbeat_loop, args=(store, run_id, owner, engine, stop), daemon=True,
@@ -328,7 +329,7 @@ def run_command(
                        f"{summary['total_bench_s'] / pace:.0f} s wall)" if pace else
                        " (simulated bench in lockstep, as fast as the host can)") if bench else ""), err=True)
         status = _execute(db, run_id, config, clock, engine_config, plan=plan, show_progress=not no_progress,
-                          label=f"run {run_id} {module.NAME}")
+                          label=f"run {run_id} {module.NAME}", bench_state=bench)
         _finish(db, run_id, status, as_json)
     finally:
         if bench is not None:
@@ -356,6 +357,8 @@ def resume_command(
     sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to this running simulated "
                                                 "bench (default: the one the run was started on)"),
     force: bool = typer.Option(False, "--force", help="resume even if the run's process looks alive"),
+    outage: Optional[float] = typer.Option(None, "--outage", min=0.0, help="simulated bench: bench seconds the "
+                                           "interruption lasted (default: its wall duration at the run's speed)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ) -> None:
@@ -376,11 +379,21 @@ def resume_command(
     if sim_info:
         from bench.sim.bench import SimulatedBench
 
-        clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
-        pv = _last_chamber_pv(db, run)
-        bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
-                               data_rate_hz=int(sim_info["data_rate_hz"]),
-                               initial_air_c=float(pv) if pv is not None else 23.0).start()
+        if sim_info["clock"].get("kind") == "lockstep":
+            # a fresh lockstep clock: the engine puts the checkpointed bench state back and lets the
+            # outage pass in bench time before the run continues
+            from bench.sim.bench import lockstep_clock
+
+            clock = lockstep_clock(sim_info.get("speed"), sim_info.get("seed"))
+            clock.fixed_outage_s = outage
+            bench = SimulatedBench(clock=clock, scenario=sim_info["scenario"], seed=sim_info.get("seed"),
+                                   data_rate_hz=int(sim_info["data_rate_hz"])).start()
+        else:
+            clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
+            pv = _last_chamber_pv(db, run)
+            bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
+                                   data_rate_hz=int(sim_info["data_rate_hz"]),
+                                   initial_air_c=float(pv) if pv is not None else 23.0).start()
         config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
     elif sim_endpoints or live.get("sim_endpoints"):
         config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"])
@@ -391,10 +404,10 @@ def resume_command(
         engine_config = EngineConfig.model_validate(stored) if stored else engine_config_for(clock)
         sys.stdout.write(f"run {run}\n")
         sys.stdout.flush()
-        typer.echo(f"resuming run {run} ({procedure})" + (f" on a restarted simulated bench x{sim_info['speed']:g}"
-                                                          if sim_info else ""), err=True)
+        typer.echo(f"resuming run {run} ({procedure})" + (" on a restarted simulated bench" if sim_info else ""),
+                   err=True)
         status = _execute(db, run, config, clock, engine_config, show_progress=not no_progress,
-                          label=f"run {run} {procedure} (resumed)")
+                          label=f"run {run} {procedure} (resumed)", bench_state=bench)
         _finish(db, run, status, as_json)
     finally:
         if bench is not None:

@@ -13,11 +13,14 @@ switches the gyro on (self-heating, warm-up) and off; the DS18B20 tree reads the
 """
 from __future__ import annotations
 
+import base64
 import json
 import os
+import pickle
 import shutil
 import tempfile
 import threading
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -175,6 +178,34 @@ class SimulatedBench:
     def __exit__(self, *exc: Any) -> None:
         self.stop()
 
+    # ---------------------------------------------------------------- continuity
+    def snapshot(self) -> dict[str, Any]:
+        """The bench's physical state at the current bench instant (chamber air and controller, table,
+        supply, the gyro's thermal network and noise processes, the probes' last conversions, the gyro
+        line's frame counter), for a run checkpoint.  ``restore`` puts it back."""
+        with self._lock:
+            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}
+            return {"version": SNAPSHOT_VERSION, "t": self.clock.now(), "scenario": self.scenario.name,
+                    "seed": self.seed,
+                    "state": base64.b64encode(zlib.compress(pickle.dumps(parts, protocol=5))).decode("ascii")}
+
+    def restore(self, snap: dict[str, Any]) -> float:
+        """Put back a ``snapshot`` (taken by this program on a bench of the same scenario); returns its
+        bench time.  The caller then moves the clock on (``LockstepClock.jump_to``)."""
+        if snap.get("version") != SNAPSHOT_VERSION:
+            raise ValueError(f"simulated bench snapshot version {snap.get('version')!r} is not {SNAPSHOT_VERSION}")
+        parts = pickle.loads(zlib.decompress(base64.b64decode(snap["state"])))
+        with self._lock:
+            for name, obj in self._state_objects().items():
+                if name not in parts:
+                    raise ValueError(f"simulated bench snapshot has no {name!r} state")
+                vars(obj).update(parts[name])
+        return float(snap["t"])
+
+    def _state_objects(self) -> dict[str, Any]:
+        return {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
+                "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+
     # ---------------------------------------------------------------- addresses
     @property
     def endpoints(self) -> dict[str, Any]:
@@ -219,6 +250,25 @@ class SimulatedBench:
         tmp = Path(str(path) + ".tmp")
         tmp.write_text(json.dumps(doc, indent=2))
         tmp.replace(path)
+
+
+SNAPSHOT_VERSION = 1
+# a snapshot keeps each object's plain state, not its wiring (locks, threads, sockets, the clock,
+# other devices, callbacks) nor caches; for the servers only the fields named here
+_WIRING = (type(threading.Lock()), type(threading.RLock()), threading.Event, threading.Thread,
+           threading.Condition)
+_SKIP = ("_cache", "inputs", "clock", "bench", "source", "faults", "sent_log")
+_SERVER_STATE = {
+    "w1": ("_retained", "last_update_t", "updates"),
+    "gyro": ("_sequence", "_next_index", "_base_t", "_rate", "_config_mode", "overrun_frames"),
+}
+
+
+def _fields(name: str, obj: Any) -> dict[str, Any]:
+    if name in _SERVER_STATE:
+        return {key: getattr(obj, key) for key in _SERVER_STATE[name]}
+    return {key: value for key, value in vars(obj).items()
+            if key not in _SKIP and not isinstance(value, _WIRING) and not callable(value)}
 
 
 class _BenchInputs(PhysicsInputs):
