@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
@@ -130,14 +131,16 @@ class LockstepClock:
 
     One thread drives the time (the run engine); other threads only read ``now()``.  Tests can hold
     the time: ``hold_at(t)`` makes the driving thread stop at bench time ``t`` (after serving it) until
-    ``release()``; ``wait_held(timeout)`` waits until it got there.
+    ``release()``; ``wait_held(timeout)`` waits until it got there.  Across processes the same is done
+    with ``hold_file``: while that file holds a bench time the clock stops there, and writes that time
+    to ``<hold_file>.held`` once it got there; emptying or removing the file releases it.
     """
 
     lockstep = True
     BURST_WALL_S = 0.25        # how far the pace may catch up after a slow stretch
 
     def __init__(self, start: float | None = None, pace: float | None = 3600.0, *,
-                 wall_budget_s: float = 60.0) -> None:
+                 wall_budget_s: float = 60.0, hold_file: str | None = None) -> None:
         if pace is not None and pace <= 0:
             raise ValueError(f"clock pace must be > 0 (or None for as fast as possible), got {pace}")
         self._t = float(time.time() if start is None else start)
@@ -150,6 +153,7 @@ class LockstepClock:
         self._cond = threading.Condition()
         self._hold: float | None = None
         self._held = False
+        self.hold_file = hold_file
         self._wall_mark = time.monotonic()
         self.fixed_outage_s: float | None = None
         self.instants = 0
@@ -161,7 +165,10 @@ class LockstepClock:
         return self._t
 
     def to_json(self) -> dict[str, Any]:
-        return {"kind": "lockstep", "now": self._t, "pace": self.pace}
+        doc = {"kind": "lockstep", "now": self._t, "pace": self.pace}
+        if self.hold_file:
+            doc["hold_file"] = self.hold_file
+        return doc
 
     # ---- participants --------------------------------------------------------------------------
     def serve(self, name: str, fn: ServeFn) -> None:
@@ -187,14 +194,15 @@ class LockstepClock:
     def advance_to(self, t: float) -> float:
         with self._lock:
             while t > self._t:
+                self._read_hold_file()
                 hold = self._hold
-                step_to = t if hold is None or hold <= self._t else min(t, hold)
-                if step_to > self._t:
-                    self._pace(step_to - self._t)
-                    self._t = step_to
-                    self._serve(step_to)
-                if hold is not None and self._t >= hold and t > self._t:
-                    self._wait_release(hold)
+                if hold is not None and self._t >= hold:
+                    self._wait_release(hold)           # stands at the hold until it is moved or lifted
+                    continue
+                step_to = t if hold is None else min(t, hold)
+                self._pace(step_to - self._t)
+                self._t = step_to
+                self._serve(step_to)
             if t == self._t and self.instants == 0:
                 self._serve(t)
             return self._t
@@ -262,7 +270,25 @@ class LockstepClock:
     def held(self) -> bool:
         return self._held
 
+    def _read_hold_file(self) -> None:
+        if self.hold_file is None:
+            return
+        try:
+            text = Path(self.hold_file).read_text().strip()
+        except FileNotFoundError:
+            text = ""
+        self._hold = float(text) if text else None
+
     def _wait_release(self, hold: float) -> None:
+        if self.hold_file is not None:
+            marker = Path(self.hold_file + ".held")
+            tmp = Path(self.hold_file + ".held.tmp")
+            tmp.write_text(repr(hold))
+            tmp.replace(marker)
+            while self._hold == hold:
+                time.sleep(0.02)
+                self._read_hold_file()
+            return
         with self._cond:
             if self._hold != hold:
                 return
@@ -280,7 +306,7 @@ def clock_from_json(data: dict[str, Any]) -> Clock:
     if kind == "stepped":
         return SteppedClock(float(data["now"]))
     if kind == "lockstep":
-        return LockstepClock(float(data["now"]), data.get("pace"))
+        return LockstepClock(float(data["now"]), data.get("pace"), hold_file=data.get("hold_file"))
     raise ValueError(f"unknown clock kind {kind!r} in clock description {data!r}")
 
 

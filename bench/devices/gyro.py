@@ -80,6 +80,7 @@ class GyroSerialLink:
         self._local_addr: tuple | None = None
         self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
         self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
+        self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -158,7 +159,11 @@ class GyroSerialLink:
         while not self._stop.is_set():
             port = self._port
             if port is None:
-                self._reconnect_loop(self.clock.now())
+                self._reconnect_loop(self._gap_from if self._gap_from is not None else self.clock.now())
+                self._gap_from = None
+                continue
+            if self._lockstep:              # the receiver reads, in the thread that moves the clock
+                self._stop.wait(0.05)
                 continue
             try:
                 # one byte (or the timeout), then whatever else is waiting: never sit out the
@@ -211,19 +216,46 @@ class GyroSerialLink:
         self._enqueue(self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz))
 
     def _receive_instant(self, t: float, reports: dict) -> None:
-        """Lockstep receiver: take in every byte the simulator wrote up to bench time ``t``."""
+        """Lockstep receiver: read every byte the simulator wrote up to bench time ``t`` (they are
+        already in the socket buffer: the simulator served the instant first), then decode them."""
         sent = reports.get("gyro") or {}
+        port = self._port
+        if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
+            deadline = time.monotonic() + self.receive_wait_s
+            while self._rx_bytes < sent["bytes"]:
+                try:
+                    data = port.read(sent["bytes"] - self._rx_bytes)
+                except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    self._gap_from = self.clock.now()
+                    self._close_port()           # the reader thread reconnects
+                    break
+                if data:
+                    self._on_bytes(data)
+                elif time.monotonic() > deadline:
+                    self.receive_timeouts += 1
+                    self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
+                                       f"not received within {self.receive_wait_s:g} s")
+                    break
         with self._rx_cond:
-            same_line = (self._port is not None and sent.get("peer") is not None
-                         and tuple(sent["peer"]) == self._local_addr)
-            if same_line and not self._rx_cond.wait_for(lambda: self._rx_bytes >= sent["bytes"],
-                                                        self.receive_wait_s):
-                self.receive_timeouts += 1
-                self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
-                                   f"not received within {self.receive_wait_s:g} s")
             data, self._rx_pending = bytes(self._rx_pending), bytearray()
         if data:
             self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
+
+    def _read_now(self) -> None:
+        """Lockstep: take whatever bytes are waiting (command replies), without blocking."""
+        port = self._port
+        if port is None:
+            return
+        try:
+            port.timeout = 0
+            data = port.read(65536)
+        except (serial.SerialException, OSError, AttributeError, TypeError):
+            return
+        finally:
+            port.timeout = self.read_timeout_s
+        if data:
+            self._on_bytes(data)
 
     def _enqueue(self, frames: list[GyroFrame]) -> None:
         if not frames:
@@ -253,6 +285,8 @@ class GyroSerialLink:
                     raise LinkDown(f"gyro serial link {self.config.url!r}: write of {text!r} failed: {exc}") from None
             deadline = time.monotonic() + timeout_s
             while time.monotonic() < deadline:
+                if self._lockstep:
+                    self._read_now()
                 with self._reply_lock:
                     buf = bytes(self._reply_buf)
                 match = expect.search(buf)
