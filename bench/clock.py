@@ -19,6 +19,7 @@ durations, settle times) uses the clock.
 """
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from pathlib import Path
@@ -156,6 +157,7 @@ class LockstepClock:
         self.hold_file = hold_file
         self._wall_mark = time.monotonic()
         self.fixed_outage_s: float | None = None
+        self._recent: collections.deque[tuple[float, float]] = collections.deque(maxlen=500)
         self.instants = 0
         self.wall_cost_s: dict[str, float] = {}     # wall seconds spent serving / receiving, by name
         self.last_reports: dict[str, dict[str, Any]] = {}
@@ -248,6 +250,14 @@ class LockstepClock:
             cost[name] = cost.get(name, 0.0) + time.perf_counter() - w0
         self.last_reports = reports
         self.instants += 1
+        self._recent.append((time.monotonic(), t))
+
+    def effective_speed(self) -> float | None:
+        """Bench seconds per wall second over the last few hundred instants (None before two)."""
+        recent = list(self._recent)
+        if len(recent) < 2 or recent[-1][0] <= recent[0][0]:
+            return None
+        return (recent[-1][1] - recent[0][1]) / (recent[-1][0] - recent[0][0])
 
     # ---- holding (tests) -----------------------------------------------------------------------
     def hold_at(self, t: float) -> None:

@@ -320,7 +320,8 @@ class Worker:
         except Exception:  # noqa: BLE001 - progress is advisory; the engine may be between steps
             return
         now = utcnow()
-        speed = getattr(self.clock, "speed", 1.0)
+        measured = getattr(self.clock, "effective_speed", None)     # lockstep: what the host achieves
+        speed = (measured() if measured else None) or getattr(self.clock, "speed", 1.0)
         finite_speed = speed if speed and speed != float("inf") else None
         remaining = float(progress.get("remaining_bench_s") or 0.0)
         wall_left = remaining / finite_speed if finite_speed else 0.0

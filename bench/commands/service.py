@@ -10,6 +10,8 @@
 """
 from __future__ import annotations
 
+import os
+
 import json
 import logging
 import secrets
@@ -47,6 +49,9 @@ def load_bench_file(path: str):
     if isinstance(doc, dict) and "bench_config" in doc:
         return BenchConfig.model_validate(doc["bench_config"]), doc.get("clock")
     return BenchConfig.load(p), None
+
+
+HOLD_FILE_ENV = "BENCH_SIM_HOLD_FILE"
 
 
 def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
@@ -109,8 +114,10 @@ def serve_command(
             from bench.sim.bench import SimulatedBench, lockstep_clock
 
             pace = parse_speed(speed)
-            sim = SimulatedBench(clock=lockstep_clock(pace, seed), scenario=scenario, bench_name=bench_name,
-                                 seed=seed).start()
+            clock = lockstep_clock(pace, seed)
+            # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
+            clock.hold_file = os.environ.get(HOLD_FILE_ENV) or None
+            sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
             cfg = sim.config
             workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim))
             typer.echo(f"simulated bench {cfg.name!r} in lockstep, "

@@ -166,15 +166,7 @@ class GyroSerialLink:
                 self._stop.wait(0.05)
                 continue
             try:
-                # one byte (or the timeout), then whatever else is waiting: never sit out the
-                # timeout with bytes in hand
-                data = port.read(1)
-                if data:
-                    port.timeout = 0           # non-blocking: take what is there now
-                    try:
-                        data += port.read(65536)
-                    finally:
-                        port.timeout = self.read_timeout_s
+                data = port.read(65536)
             except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
                 # AttributeError/TypeError: pyserial's socket handler after a concurrent close
                 if self._stop.is_set():

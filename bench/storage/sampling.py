@@ -10,6 +10,8 @@ so a link gap shows as ``max_interval_s``).  Intervals are None with fewer than 
 """
 from __future__ import annotations
 
+import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -30,7 +32,28 @@ def interval_stats(times: np.ndarray) -> dict[str, Any]:
             "max_interval_s": float(d.max()) if d.size else None}
 
 
-def sampling_summary(db: Database, run_id: int) -> dict[str, Any]:
+_CACHE: dict[tuple[int, int], tuple[float, dict[str, Any]]] = {}
+_CACHE_LOCK = threading.Lock()
+
+
+def sampling_summary(db: Database, run_id: int, *, max_age_s: float = 0.0) -> dict[str, Any]:
+    """The summary (see the module docstring); with ``max_age_s`` a summary computed for the same run
+    less than that many wall seconds ago is returned again (the API is polled while a run grows)."""
+    key = (id(db), int(run_id))
+    if max_age_s > 0:
+        with _CACHE_LOCK:
+            hit = _CACHE.get(key)
+        if hit is not None and time.monotonic() - hit[0] < max_age_s:
+            return hit[1]
+    out = _summary(db, run_id)
+    with _CACHE_LOCK:
+        if len(_CACHE) > 256:
+            _CACHE.clear()
+        _CACHE[key] = (time.monotonic(), out)
+    return out
+
+
+def _summary(db: Database, run_id: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
     with db.engine.connect() as conn:
         rows = conn.execute(select(ProbeReadingRow.t, ProbeReadingRow.name, ProbeReadingRow.celsius)
