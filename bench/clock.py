@@ -122,10 +122,6 @@ ServeFn = Callable[[float], dict[str, Any] | None]
 ReceiveFn = Callable[[float, dict[str, dict[str, Any]]], None]
 
 
-class ClockStalled(RuntimeError):
-    """A simulator or driver did not serve / receive a bench instant within the wall budget."""
-
-
 class LockstepClock:
     """Bench time that advances only in ``sleep``/``advance_to`` and only after every sample due at
     the new instant has been served and received (see the module docstring).
@@ -141,13 +137,12 @@ class LockstepClock:
     BURST_WALL_S = 0.25        # how far the pace may catch up after a slow stretch
 
     def __init__(self, start: float | None = None, pace: float | None = 3600.0, *,
-                 wall_budget_s: float = 60.0, hold_file: str | None = None) -> None:
+                 hold_file: str | None = None) -> None:
         if pace is not None and pace <= 0:
             raise ValueError(f"clock pace must be > 0 (or None for as fast as possible), got {pace}")
         self._t = float(time.time() if start is None else start)
         self.pace = pace
         self.speed = float(pace) if pace is not None else float("inf")
-        self.wall_budget_s = wall_budget_s
         self._servers: dict[str, ServeFn] = {}
         self._receivers: dict[str, ReceiveFn] = {}
         self._lock = threading.RLock()

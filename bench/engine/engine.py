@@ -5,7 +5,9 @@ Loop (one tick): drain gyro frames, read probes / telemetry when due (``Acquisit
 control, update suspension, advance the current step with *active* time (not paused, not
 suspended), checkpoint when due, sleep until the next tick.  The tick is adaptive: ``tick_s`` while
 recording / ramping / waiting for stability / moving, ``max_tick_s`` in plain soaks, shortened to
-land on a step's end; data is drained on every tick.
+land on a step's end and on the next scheduled probe read or telemetry (``Acquisition.next_due``: the
+acquisition schedule is a fixed bench-time grid, so on the simulated bench's lockstep clock every
+device is read exactly at its period); data is drained on every tick.
 
 Control: ``stop`` (status "stopping") finishes the current recording step (stops at once in any
 other step, or when paused / suspended), then safe state, final status "stopped"; ``abort`` goes to
