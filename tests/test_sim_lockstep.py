@@ -90,4 +90,6 @@ def test_true_bias_terms_fitted_on_one_live_run_reach_the_noise_floor_on_another
     ds_v = run_dataset(rid_v, open_database(url_v))
     ch = public(close_loop(ds_t, ds_v, declared, channels=["x"]))["channels"]["x"]
     std100, floor = ch["before"]["validation_std100_dph"], ch["noise_floor_dph"]
+    print(f"validation std of 100-s means {std100:.4f} deg/h, noise floor {floor:.4f} deg/h, "
+          f"ratio {std100 / floor:.3f} ({len(ds_t)} / {len(ds_v)} rows)")
     assert std100 <= 1.15 * floor, (std100, floor, ch["findings"])
