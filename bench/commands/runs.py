@@ -248,6 +248,9 @@ def _attach_sim(path: str):
         raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
 
 
+HOLD_FILE_ENV = "BENCH_SIM_HOLD_FILE"
+
+
 def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
     return {"speed": speed, "scenario": scenario, "seed": sim.seed, "data_rate_hz": sim.data_rate_hz,
             "clock": sim.clock.to_json(), "chamber_transport": chamber_transport}
@@ -302,6 +305,8 @@ def run_command(
         from bench.sim.bench import SimulatedBench, lockstep_clock
 
         lockstep = lockstep_clock(pace, seed)
+        # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
+        lockstep.hold_file = os.environ.get(HOLD_FILE_ENV) or None
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
         plan_summary(plan, BenchConfig(), engine_config_for(lockstep))

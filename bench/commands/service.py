@@ -51,9 +51,6 @@ def load_bench_file(path: str):
     return BenchConfig.load(p), None
 
 
-HOLD_FILE_ENV = "BENCH_SIM_HOLD_FILE"
-
-
 def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
     from bench.clock import clock_from_json, make_clock
 
@@ -116,6 +113,8 @@ def serve_command(
             pace = parse_speed(speed)
             clock = lockstep_clock(pace, seed)
             # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
+            from bench.commands.runs import HOLD_FILE_ENV
+
             clock.hold_file = os.environ.get(HOLD_FILE_ENV) or None
             sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
             cfg = sim.config

@@ -44,6 +44,8 @@ _RATES = (1000, 500, 250, 100, 50, 25, 10, 5, 1)
 # on a lockstep clock the frame rate costs host time, not accuracy: the simulated default is
 # decimated to 1 Hz (the physics integrates on its own grid; each frame is a 1-s sample)
 LOCKSTEP_DATA_RATE_HZ = 1
+# wall seconds a driver waits for a simulator's reply on the lockstep bench (see bench_config)
+LOCKSTEP_REPLY_TIMEOUT_S = 30.0
 # a seeded simulated bench starts at this bench instant (2026-01-01T00:00:00Z), so the same scenario
 # and seed give the same bench times, not only the same values
 SEEDED_EPOCH_S = 1_767_225_600.0
@@ -228,16 +230,21 @@ class SimulatedBench:
         addresses differ."""
         e = self.endpoints
         chamber_addr = e["chamber_modbus_tcp"] if chamber_transport == "modbus_tcp" else e["chamber_modbus_rtu"]
+        # in lockstep bench time a reply that is late in wall time only means the host is busy (the
+        # simulators answer at the same bench instant whatever the delay): wall timeouts are generous,
+        # so load slows the run instead of changing what it records
+        reply_s = LOCKSTEP_REPLY_TIMEOUT_S if self.lockstep else None
         return BenchConfig(
             name=self.bench_name,
             latitude_deg=self.scenario.latitude_deg,
             chamber=ChamberConfig(transport=chamber_transport, address=chamber_addr, inter_frame_delay_s=0.0,
-                                  baudrate=115200, timeout_s=2.0),
-            turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry),
+                                  baudrate=115200, timeout_s=reply_s or 2.0),
+            turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry,
+                                      **({"timeout_s": reply_s} if reply_s else {})),
             gyro=GyroConfig(url=e["gyro"], frame=e["gyro_frame"], data_rate_hz=self.data_rate_hz,
                             channels=tuple(self.scenario.channels)),
             probes=ProbeConfig(w1_root=e["w1_root"], probes=dict(self.serials)),
-            psu=PsuConfig(url=e["psu"]),
+            psu=PsuConfig(url=e["psu"], **({"timeout_s": reply_s} if reply_s else {})),
         )
 
     @property
