@@ -249,7 +249,6 @@ def _attach_sim(path: str):
         raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
 
 
-HOLD_FILE_ENV = "BENCH_SIM_HOLD_FILE"
 
 
 def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
@@ -307,7 +306,9 @@ def run_command(
 
         lockstep = lockstep_clock(pace, seed)
         # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
-        lockstep.hold_file = os.environ.get(HOLD_FILE_ENV) or None
+        from bench.settings import load_settings
+
+        lockstep.hold_file = load_settings().sim_hold_file or None
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
         procedures.check_duration(plan_summary(plan, BenchConfig(), engine_config_for(lockstep)))

@@ -127,14 +127,13 @@ def serve_command(
                 workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None)))
         else:
             from bench.clock import parse_speed
+            from bench.settings import load_settings
             from bench.sim.bench import SimulatedBench, lockstep_clock
 
             pace = parse_speed(speed)
             clock = lockstep_clock(pace, seed)
             # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
-            from bench.commands.runs import HOLD_FILE_ENV
-
-            clock.hold_file = os.environ.get(HOLD_FILE_ENV) or None
+            clock.hold_file = load_settings().sim_hold_file or None
             sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
             cfg = sim.config
             workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim))
