@@ -25,6 +25,15 @@ def _metrics(values: np.ndarray, target: np.ndarray, time_s: np.ndarray, flagged
             "n": int(ok.sum()), "flagged_fraction": float(np.mean(flagged)) if len(flagged) else 0.0}
 
 
+def validation_errors(result, data, values: np.ndarray, target: np.ndarray, flagged: np.ndarray) -> dict[str, Any]:
+    """Range-aware validation numbers (``bench.fit.validity``): in-range std100/RMS, coverage, and the
+    deployed model's std100 on the whole run."""
+    from bench.fit.validity import range_aware_errors, result_in_range
+
+    resid = np.asarray(target, float) - np.asarray(values, float)
+    return range_aware_errors(resid, resid, data.time, result_in_range(result, data, flagged))
+
+
 def fit_channels(model: str, train, validate, channels: list[str], opts: dict[str, Any]) -> tuple[dict, list]:
     """Fit ``model`` per channel; returns the CLI/API JSON document and the FitResults."""
     from bench.fit.catalog import fit_model, predict, target_of
@@ -43,6 +52,8 @@ def fit_channels(model: str, train, validate, channels: list[str], opts: dict[st
             values, flagged = predict(result, data)
             target = target_of(result, data)
             entry[label] = _metrics(values, target, data.time, flagged)
+            if label == "validation":
+                entry[label].update(validation_errors(result, data, values, target, flagged))
             if result.model == "hrg_reverse":
                 err = np.abs(np.asarray(values) - target)
                 entry[label]["max_abs_error_c"] = float(np.nanmax(err))
