@@ -35,11 +35,12 @@ def test_block_average_100s_and_orientation_split():
     orient = np.array(["NUE"] * 550 + ["ENU"] * 450)
     ds = Dataset({"time_s": t, "gyro_x": t.copy(), "temp_t1": np.where(t == 5, np.nan, 1.0), "orientation": orient})
     avg = prep.block_average(ds, 100.0)
-    # blocks 0..4 (NUE), 500-549 (NUE), 550-599 (ENU), 600..999 (ENU)
+    # blocks restart at each orientation: 0..4 (NUE), 500-549 (NUE), 550-649 .. 950-999 (ENU)
     assert len(avg) == 11
     np.testing.assert_allclose(avg["gyro_x"][:2], [49.5, 149.5])
     assert avg["orientation"].tolist()[5:7] == ["NUE", "ENU"]
-    np.testing.assert_allclose(avg["gyro_x"][5:7], [524.5, 574.5])
+    np.testing.assert_allclose(avg["gyro_x"][5:7], [524.5, 599.5])
+    np.testing.assert_allclose(avg["gyro_x"][-1], 974.5)
     assert avg["temp_t1"][0] == 1.0   # NaN ignored
 
 

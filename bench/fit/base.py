@@ -15,8 +15,7 @@ from typing import Any
 import numpy as np
 
 from bench.jsonsafe import jsonable
-
-EARTH_RATE_DPH = 7.2921158553e-5 * 180.0 / 3.141592653589793 * 3600.0  # WGS-84 Omega_ie, deg/h
+from bench.signal.geometry import EARTH_RATE_DPH  # noqa: F401  (re-exported; defined in bench.signal)
 
 
 @dataclass

@@ -26,7 +26,7 @@ Public API::
     parse_csv_text(text, *, source="<text>") -> Dataset
     write_csv(dataset, path) -> None                 # atomic (temp file + rename)
     format_csv(dataset) -> str
-    ORIENTATION_DEFAULT = "NUE"; validate_orientation(code) -> str
+    ORIENTATION_DEFAULT = DEFAULT_ORIENTATION; validate_orientation(code) -> str
 """
 from __future__ import annotations
 
@@ -39,11 +39,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.devices.orientation import validate_code
 from bench.errors import DataFormatError
 from bench.fit.base import Dataset
+from bench.signal.geometry import DEFAULT_ORIENTATION, validate_canonical_code
 
-ORIENTATION_DEFAULT = "NUE"
+ORIENTATION_DEFAULT = DEFAULT_ORIENTATION
 FIXED_NUMERIC = ("power", "chamber_pv", "chamber_sp", "table_rate_dps")
 PREFIXES = ("gyro_", "temp_", "freq_")
 _NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
@@ -53,10 +53,8 @@ _NUMERIC_META = ("latitude_deg", "sample_period_s")
 
 def validate_orientation(code: str) -> str:
     """Return ``code`` if it is an upper-case right-handed orientation code (e.g. ``NUE``), else raise
-    ValueError (``bench.devices.orientation.validate_code`` is the one definition of a valid code)."""
-    if not isinstance(code, str) or code != code.strip().upper():
-        raise ValueError(f"orientation {code!r}: need three upper-case letters from E W N S U D")
-    return validate_code(code)
+    ValueError (``bench.signal.geometry`` is the one definition of a valid code)."""
+    return validate_canonical_code(code)
 
 
 def _check_column_name(name: str) -> str | None:

@@ -49,6 +49,7 @@ import numpy as np
 from bench.errors import DataFormatError
 from bench.fit.base import FitResult
 from bench.jsonsafe import jsonable as _jsonable
+from bench.signal import temperature_rate
 
 SCHEMA = "gyrobench.fit.export"
 SCHEMA_VERSION = 1
@@ -198,10 +199,9 @@ def evaluate_model_doc(model_doc: dict[str, Any], columns: dict[str, np.ndarray]
             if key in columns:
                 v = np.asarray(columns[key], float)
             else:
-                from bench.fit.prep import rate_c_per_min
                 if time_s is None:
                     raise DataFormatError(f"rate input {key} needs time_s")
-                v = rate_c_per_min(time_s, columns[inp["column"]], inp["filter"]["window_s"])
+                v = temperature_rate(time_s, columns[inp["column"]], inp["filter"]["window_s"], method="centred_slope")
         else:
             v = np.asarray(columns[inp["column"]], float)
         unclipped[key] = v

@@ -42,8 +42,8 @@ then the rate by differencing the smoothed temperature):
   difference between the per-sample smoothed inputs and the averaged fit points) -- never NaN,
   never extrapolated.  The hull polygon is stored in ``validity["hull"]``.
 
-The time-series helpers at the top (run splitting, 100-s block averages, smoothed rate) are used
-by ``bench.fit.hrg`` and ``bench.fit.report`` as well.
+Run splitting, 100-s block means, the smoothed rate (method ``"savgol2"``, named in every result's
+definition as ``rate_method``) and the lag-1 autocorrelation come from ``bench.signal``.
 """
 from __future__ import annotations
 
@@ -52,98 +52,13 @@ from typing import Any
 
 import numpy as np
 from scipy.interpolate import LinearNDInterpolator
-from scipy.signal import savgol_filter
 from scipy.spatial import ConvexHull, Delaunay, QhullError
 
 from bench.errors import DataFormatError
 from bench.fit.base import Dataset, FitResult
+from bench.signal import block_means, lag1_autocorrelation, newey_west_lags, run_segments, smoothed_temperature_and_rate
 
-# --------------------------------------------------------------------------------------------
-# Time-series helpers
-# --------------------------------------------------------------------------------------------
-
-
-def run_segments(time_s: np.ndarray, run: np.ndarray | None = None, gap_factor: float = 5.0) -> list[slice]:
-    """Contiguous pieces of a record: split where time goes backwards, where a gap exceeds
-    ``gap_factor`` x the median sample step, or where the ``run`` label changes."""
-    t = np.asarray(time_s, float)
-    n = t.size
-    if n == 0:
-        return []
-    if n == 1:
-        return [slice(0, 1)]
-    dt = np.diff(t)
-    positive = dt[dt > 0]
-    step = float(np.median(positive)) if positive.size else 1.0
-    cut = (dt <= 0) | (dt > gap_factor * step)
-    if run is not None:
-        r = np.asarray(run)
-        cut |= r[1:] != r[:-1]
-    edges = np.concatenate([[0], np.nonzero(cut)[0] + 1, [n]])
-    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-def block_average(time_s: np.ndarray, columns: dict[str, np.ndarray], block_s: float,
-                  segments: list[slice]) -> tuple[np.ndarray, dict[str, np.ndarray], list[slice]]:
-    """Average every column over consecutive ``block_s`` windows inside each segment.
-
-    Blocks holding less than half the segment's typical block count (a ragged end) are dropped.
-    Returns (block mean times, averaged columns, segments of the averaged series)."""
-    t = np.asarray(time_s, float)
-    out_t: list[np.ndarray] = []
-    out_cols: dict[str, list[np.ndarray]] = {k: [] for k in columns}
-    out_segments: list[slice] = []
-    pos = 0
-    for seg in segments:
-        ts = t[seg]
-        step = float(np.median(np.diff(ts))) if ts.size > 1 else block_s
-        if block_s <= 0 or step >= 0.9 * block_s:          # already at (or coarser than) block spacing
-            ids = np.arange(ts.size)
-        else:
-            ids = np.floor((ts - ts[0]) / block_s).astype(np.int64)
-        uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-        keep = counts >= 0.5 * np.median(counts)
-        def mean_of(values: np.ndarray) -> np.ndarray:
-            return (np.bincount(inverse, weights=values, minlength=uniq.size) / counts)[keep]
-        out_t.append(mean_of(ts))
-        for k, v in columns.items():
-            out_cols[k].append(mean_of(np.asarray(v, float)[seg]))
-        m = int(keep.sum())
-        if m:
-            out_segments.append(slice(pos, pos + m))
-            pos += m
-    cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)  # noqa: E731
-    return cat(out_t), {k: cat(v) for k, v in out_cols.items()}, out_segments
-
-
-def smoothed_and_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
-                      segments: list[slice]) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothed temperature and its rate in deg C/min, per segment.
-
-    Savitzky-Golay (order 2) over ``window_s`` when that spans >= 3 samples, else the series as is
-    with central differences (``np.gradient``) -- the paper differences 100-s smoothed data."""
-    t = np.asarray(time_s, float)
-    x = np.asarray(temp_c, float)
-    smooth = x.copy()
-    rate = np.zeros_like(x)
-    for seg in segments:
-        ts, xs = t[seg], x[seg]
-        if xs.size < 2:
-            continue
-        step = float(np.median(np.diff(ts)))
-        if step <= 0:
-            step = 1.0
-        w = int(round(window_s / step)) if window_s > 0 else 1
-        w = min(w, xs.size if xs.size % 2 else xs.size - 1)
-        if w % 2 == 0:
-            w -= 1
-        if w >= 3:
-            smooth[seg] = savgol_filter(xs, w, 2, mode="interp")
-            rate[seg] = savgol_filter(xs, w, 2, deriv=1, delta=step / 60.0, mode="interp")
-        else:
-            rate[seg] = np.gradient(xs, ts / 60.0, edge_order=2 if xs.size >= 3 else 1)
-    return smooth, rate
-
+RATE_METHOD = "savgol2"        # bench.signal.temperature_rate method of every dT/dt in these models
 
 def pick_temperature_column(dataset: Dataset, probe: str | None, where: str) -> str:
     """Resolve a probe name ("t2" or "temp_t2"); default: the only temp_* column."""
@@ -180,8 +95,8 @@ def thermal_inputs(dataset: Dataset, channel: str, temp_column: str, average_s: 
     y = _column(dataset, f"gyro_{channel}", where)
     run = dataset.columns.get(run_column)
     segs = run_segments(t, run)
-    tb, cols, segb = block_average(t, {"T": temp, "y": y}, average_s, segs)
-    smooth, rate = smoothed_and_rate(tb, cols["T"], average_s, segb)
+    tb, cols, segb, _ = block_means(t, {"T": temp, "y": y}, average_s, segs)
+    smooth, rate = smoothed_temperature_and_rate(tb, cols["T"], average_s, segb)
     return {"time_s": tb, "T": cols["T"], "rate": rate, "y": cols["y"], "segments": segb}
 
 
@@ -190,7 +105,7 @@ def per_sample_thermal(dataset: Dataset, temp: np.ndarray, average_s: float,
     """Smoothed T and dT/dt (C/min) at every sample (prediction side of ``thermal_inputs``)."""
     t = _column(dataset, "time_s", "prediction")
     segs = run_segments(t, dataset.columns.get(run_column))
-    return smoothed_and_rate(t, temp, average_s, segs)
+    return smoothed_temperature_and_rate(t, temp, average_s, segs)
 
 
 def thermal_validity(dataset: Dataset, temp_samples: np.ndarray, average_s: float, T_avg: np.ndarray,
@@ -240,9 +155,8 @@ def fog_design(x_c: np.ndarray, rate: np.ndarray, names: list[str]) -> np.ndarra
 
 def _andrews_maxlags(resid: np.ndarray) -> int:
     n = resid.size
-    nw = int(math.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))
-    r = resid - resid.mean()
-    rho = float(np.dot(r[:-1], r[1:]) / max(np.dot(r, r), 1e-300)) if n > 2 else 0.0
+    nw = newey_west_lags(n)
+    rho = lag1_autocorrelation(resid) if n > 2 else 0.0
     rho = min(max(rho, 0.0), 0.97)
     alpha = 4 * rho ** 2 / ((1 - rho) ** 2 * (1 + rho) ** 2)
     andrews = int(math.ceil(1.1447 * (alpha * n) ** (1.0 / 3.0))) if rho > 0 else 0
@@ -266,16 +180,6 @@ def _pvalues(y: np.ndarray, X: np.ndarray, test: str) -> np.ndarray:
     return np.where(np.isfinite(p), p, 1.0)
 
 
-def _lag1(resid: np.ndarray, segments: list[slice]) -> float:
-    num = den = 0.0
-    for seg in segments:
-        r = resid[seg] - resid[seg].mean()
-        if r.size > 1:
-            num += float(np.dot(r[:-1], r[1:]))
-            den += float(np.dot(r, r))
-    return num / den if den > 0 else 0.0
-
-
 def stepwise_select(x_c: np.ndarray, rate: np.ndarray, y: np.ndarray, segments: list[slice], *,
                     test: str = "decimate", p_enter: float = 0.05, p_remove: float = 0.10,
                     candidates: list[str] | None = None, sidak: bool = True,
@@ -297,7 +201,7 @@ def stepwise_select(x_c: np.ndarray, rate: np.ndarray, y: np.ndarray, segments: 
         raise DataFormatError(f"fog_stepwise: {y.size} averaged points for {full.shape[1]} terms; need at least "
                               f"{2 * full.shape[1]}", column="time_s")
     coef, *_ = np.linalg.lstsq(full, y, rcond=None)
-    rho = _lag1(y - full @ coef, segments)
+    rho = lag1_autocorrelation(y - full @ coef, segments)
     block = 1
     X_all, y_test = full, y
     if test == "decimate":
@@ -309,7 +213,7 @@ def stepwise_select(x_c: np.ndarray, rate: np.ndarray, y: np.ndarray, segments: 
             idx = np.arange(y.size, dtype=float)
             cols = {f"c{j}": full[:, j] for j in range(full.shape[1])}
             cols["y"] = y
-            _, avg, _ = block_average(idx, cols, float(block), segments)
+            avg = block_means(idx, cols, float(block), segments).columns
             X_all = np.column_stack([avg[f"c{j}"] for j in range(full.shape[1])])
             y_test = avg["y"]
     if test == "prewhiten":
@@ -390,6 +294,7 @@ def fit_fog_stepwise(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
             "source": "seed 004 eq 6 (12 candidate terms incl. Y0), stepwise selection",
             "terms": [{"name": n, "T_power": _TERM_POWERS[n][0], "dT_power": _TERM_POWERS[n][1]} for n in terms],
             "t0_c": t0, "temperature_column": temp_col, "average_s": average_s,
+            "rate_method": RATE_METHOD, "rate_window_s": average_s,
             "rate_filter": f"Savitzky-Golay order 2 over {average_s:g} s (gradient on {average_s:g}-s means)",
             "selection": {"test": sel["test"], "p_enter": float(opts.get("p_enter", 0.05)),
                           "p_remove": float(opts.get("p_remove", 0.10)), "block_points": sel["block"],
@@ -542,6 +447,7 @@ def fit_fog_delaunay(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
                        "boundary point, flagged",
             "source": "seed 004 section 2.2, eqs 13-19",
             "temperature_column": temp_col, "average_s": average_s,
+            "rate_method": RATE_METHOD, "rate_window_s": average_s,
             "centre": centre.tolist(), "scale": scale.tolist(), "hull_tolerance": tolerance,
             "points": pts.tolist(),                            # rows: T (C), dT/dt (C/min), bias (deg/h)
             "selection": {"stride": int(opts.get("stride", 3)), "fast_fraction": float(opts.get("fast_fraction", 0.1)),

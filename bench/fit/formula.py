@@ -17,7 +17,7 @@ Atoms resolve against the dataset columns, in this order:
 ``X`` -> ``temp_X`` if that column exists (a temperature, C);
 ``dX`` -> the rate of ``temp_X`` in C/min if ``temp_X`` exists (column ``rate_X`` when present, e.g.
 computed before averaging by ``prep.add_rates``; otherwise computed with
-``prep.rate_c_per_min(time_s, temp_X, rate_window_s)``);
+``bench.signal.temperature_rate(time_s, temp_X, rate_window_s, method="centred_slope")``);
 otherwise the column named ``X`` itself (e.g. ``lag_t1_600`` added by the close-loop helper, ``chamber_pv``).
 
 Each parsed node is a JSON-able dict, which is also the firmware evaluation recipe::
@@ -49,6 +49,7 @@ import numpy as np
 
 from bench.errors import BenchError
 from bench.fit.base import Dataset
+from bench.signal import temperature_rate
 
 Node = dict[str, Any]
 _TOKEN = re.compile(r"\s*(?:(?P<num>\d+(?:\.\d*)?(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)"
@@ -355,8 +356,6 @@ class CompiledFormula:
 
     def signals(self, ds: Dataset) -> dict[str, np.ndarray]:
         """Raw (unclipped) signal arrays for every leaf."""
-        from bench.fit.prep import rate_c_per_min  # local: prep imports nothing from here
-
         out: dict[str, np.ndarray] = {}
         for key, leaf in self.signal_nodes().items():
             if leaf["op"] == "rate":
@@ -364,7 +363,7 @@ class CompiledFormula:
                 if pre and pre in ds:
                     out[key] = np.asarray(ds[pre], dtype=np.float64)
                 else:
-                    out[key] = rate_c_per_min(ds.time, ds[leaf["column"]], leaf["window_s"])
+                    out[key] = temperature_rate(ds.time, ds[leaf["column"]], leaf["window_s"], method="centred_slope")
             else:
                 out[key] = np.asarray(ds[leaf["column"]], dtype=np.float64)
         return out

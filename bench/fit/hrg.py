@@ -40,15 +40,14 @@ from bench.errors import DataFormatError
 from bench.fit import pso
 from bench.fit.base import Dataset, FitResult
 from bench.fit.fog import (
+    RATE_METHOD,
     _column,
     apply_mode,
-    block_average,
     per_sample_thermal,
     pick_temperature_column,
-    run_segments,
-    smoothed_and_rate,
     thermal_validity,
 )
+from bench.signal import block_means, run_segments, temperature_rate
 
 # --------------------------------------------------------------------------------------------
 # Frequency <-> temperature cubics
@@ -258,7 +257,7 @@ def _averaged_pair(dataset: Dataset, x: np.ndarray, y: np.ndarray, average_s: fl
     if "time_s" not in dataset or average_s <= 0:
         return x, y
     t = np.asarray(dataset["time_s"], float)
-    _, cols, _ = block_average(t, {"x": x, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
+    cols = block_means(t, {"x": x, "y": y}, average_s, run_segments(t, dataset.columns.get("run"))).columns
     return cols["x"], cols["y"]
 
 
@@ -364,8 +363,8 @@ def _eq7_inputs(dataset: Dataset, channel: str, opts: dict[str, Any], where: str
     t = _column(dataset, "time_s", where)
     y = _column(dataset, f"gyro_{channel}", where)
     average_s = float(opts.get("average_s", 100.0))
-    tb, cols, segb = block_average(t, {"T": T, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
-    _, rate = smoothed_and_rate(tb, cols["T"], average_s, segb)
+    tb, cols, segb, _ = block_means(t, {"T": T, "y": y}, average_s, run_segments(t, dataset.columns.get("run")))
+    rate = temperature_rate(tb, cols["T"], average_s, method=RATE_METHOD, segments=segb)
     validity = thermal_validity(dataset, T, average_s, cols["T"], rate)
     return source, cols["T"], rate, cols["y"], average_s, validity
 
@@ -380,6 +379,7 @@ def _eq7_result(model: str, channel: str, source: dict[str, Any], average_s: flo
         definition={"formula": "B = k0 + k1 T + k2 T^2 + k3 dT + k4 dT^2 + k5 T dT (T in C, dT = dT/dt in C/min)",
                     "source": "seed 002 eq 7", "temperature_source": source, "average_s": average_s,
                     "temperature_column": source.get("column"),
+                    "rate_method": RATE_METHOD, "rate_window_s": average_s,
                     "rate_filter": f"Savitzky-Golay order 2 over {average_s:g} s (gradient on {average_s:g}-s means)",
                     **extra_def},
         coefficients={name: float(v) for name, v in zip(EQ7_TERMS, k)},

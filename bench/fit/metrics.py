@@ -6,8 +6,8 @@ Definitions and sources:
   the means over consecutive ``window_s`` = 100 s windows.  ``bias_stability_3sigma`` = 3 x that,
   the "(deg/h)(3 sigma)" form quoted in S002 Table 4.
 * Bias repeatability (零偏重复性, S001 B_r): standard deviation (ddof = 1) of the per-run biases.
-* Allan deviation: ``allantools.oadev(rate, rate=fs, data_type="freq", taus="octave")`` (calibration
-  notes 2.1: a gyro rate is "frequency" data; never taus="all" on long series).  IEEE 952 readings:
+* Allan deviation: ``bench.signal.allan_deviation`` (allantools ``oadev``, data_type "freq", octave
+  taus; non-finite samples dropped; at least ``bench.signal.MIN_ALLAN_SAMPLES`` samples).  IEEE 952 readings:
   ARW N = sigma(tau = 1 s) [deg/h] / 60 -> deg/sqrt(h) (log-log interpolation; when 1 s is below the
   shortest tau, extrapolated on the -1/2 slope from the shortest tau); bias instability
   B = min sigma / 0.664 (deg/h); rate random walk K from a +1/2-slope line fitted to the taus after the
@@ -37,26 +37,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bench.signal import allan_deviation, block_means
+
 BI_FACTOR = 0.664
 
 
 def window_means(time_s: np.ndarray, x: np.ndarray, window_s: float = 100.0, min_fraction: float = 0.5) -> np.ndarray:
-    """Means of ``x`` over consecutive windows of ``window_s`` seconds (NaNs ignored; windows with fewer
-    than ``min_fraction`` of the usual count of finite samples dropped)."""
+    """Means of the finite values of ``x`` over consecutive windows of ``window_s`` seconds
+    (``bench.signal.block_means`` over the finite samples, one segment; windows with fewer than
+    ``min_fraction`` of the usual count dropped)."""
     t = np.asarray(time_s, dtype=np.float64)
     v = np.asarray(x, dtype=np.float64)
-    if len(t) == 0:
-        return np.array([])
-    block = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
-    nb = int(block.max()) + 1
     ok = np.isfinite(v)
-    cnt = np.bincount(block, ok.astype(np.float64), nb)
-    s = np.bincount(block, np.where(ok, v, 0.0), nb)
-    if not np.any(cnt > 0):
+    if not ok.any():
         return np.array([])
-    typical = np.median(cnt[cnt > 0])
-    good = cnt >= max(1.0, min_fraction * typical)
-    return s[good] / cnt[good]
+    if not ok.all():
+        t, v = t[ok], v[ok]
+    return block_means(t, {"x": v}, float(window_s), min_fraction=min_fraction).columns["x"]
 
 
 def bias_stability(time_s: np.ndarray, x: np.ndarray, window_s: float = 100.0) -> float:
@@ -96,20 +93,10 @@ class AllanResult:
 
 
 def allan(x: np.ndarray, rate_hz: float = 1.0, taus: str | np.ndarray = "octave") -> AllanResult:
-    """Overlapping Allan deviation of a rate series (deg/h) and the IEEE 952 readings."""
-    import allantools
-
-    v = np.asarray(x, dtype=np.float64)
-    notes = []
-    if not np.all(np.isfinite(v)):
-        notes.append(f"{int(np.sum(~np.isfinite(v)))} non-finite samples dropped (series joined)")
-        v = v[np.isfinite(v)]
-    if len(v) < 8:
-        raise ValueError(f"allan: need at least 8 samples, got {len(v)}")
-    t, ad, _err, n = allantools.oadev(v, rate=float(rate_hz), data_type="freq", taus=taus)
-    t, ad, n = np.asarray(t, float), np.asarray(ad, float), np.asarray(n)
-    good = np.isfinite(ad) & (ad > 0)
-    t, ad, n = t[good], ad[good], n[good]
+    """Overlapping Allan deviation of a rate series (deg/h; ``bench.signal.allan_deviation``) and the
+    IEEE 952 readings."""
+    t, ad, n, dropped = allan_deviation(x, rate_hz, taus)
+    notes = [f"{dropped} non-finite samples dropped (series joined)"] if dropped else []
     lt, la = np.log(t), np.log(ad)
     if t[0] <= 1.0 <= t[-1]:
         s1 = float(np.exp(np.interp(0.0, lt, la)))

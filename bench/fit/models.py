@@ -56,6 +56,7 @@ from bench.fit.metrics import bias_stability
 
 FitFn = Callable[..., FitResult]
 PredictFn = Callable[..., tuple[np.ndarray, np.ndarray]]
+RATE_METHOD = "centred_slope"   # bench.signal.temperature_rate method of every dT/dt term here
 RATE_FILTER_TEXT = ("centred least-squares slope of the temperature over window_s seconds (Savitzky-Golay "
                     "first derivative), in C/min")
 
@@ -247,6 +248,7 @@ def fit_linear_terms(model: str, ds: Dataset, channel: str, *, terms: list[tuple
     definition = {
         "kind": "linear", "formula": compiled.text, "target": info["target"], "target_unit": "deg/h",
         "intercept": compiled.names[0], "terms": compiled.recipe(),
+        "rate_method": RATE_METHOD, "rate_window_s": float(rate_window_s),
         "rate_filter": {"method": RATE_FILTER_TEXT, "window_s": float(rate_window_s), "unit": "C/min"},
         "earth_rate": {k: v for k, v in info.items() if k != "target"},
         "output": "bias_dph = sum over terms of coefficient * term value (intercept term = 1)",

@@ -5,14 +5,10 @@ Pure functions over numpy arrays / ``Dataset``; no I/O.  Sources:
 * Pauta (3-sigma, 拉依达准则) rejection, applied to residuals or short windows only, never to a
   trending raw signal (calibration-notes 4.1 "Outliers"; S000 3.3).
 * 100-s averaging ("百秒标准差", S000 Table 3) -> ``block_average``.
-* dT/dt in C/min (S000 eq 4 unit of q; S001 defines a forward difference over a set interval).  Filter
-  used here: the **centred least-squares slope over ``window_s`` seconds** (Savitzky-Golay first
-  derivative, polyorder 1, which equals polyorder 2 at the window centre), computed on the series
-  linearly resampled to a uniform grid at the median sample period; samples whose window is not
-  covered by data (gap longer than ``window_s/2``) get NaN.  Calibration-notes lesson 9.
-* Earth rate (calibration-notes sec. 3/6): Omega_ENU = 15.041 deg/h * [0, cos(lat), sin(lat)];
-  reading of body axis i = u_i . Omega, u_i = unit vector of body axis i in ENU given by the
-  orientation code (letters = directions of body x, y, z; default ``NUE`` = S000's 北天东).
+* dT/dt in C/min (S000 eq 4 unit of q; S001 defines a forward difference over a set interval):
+  ``bench.signal.temperature_rate`` with the ``"centred_slope"`` method (centred least-squares slope
+  over ``window_s`` seconds; calibration-notes lesson 9).
+* Earth rate and orientation geometry: ``bench.signal.geometry`` (default code ``NUE`` = S000's 北天东).
 * Installation matrix M (S000 eq 1): omega_system = M @ omega_channel; channel axis i in the system
   frame = row i of inv(M), so Earth rate read by channel i = (inv(M) @ Omega_body)_i (S000 eq 2).
 * Eight-position test (S000 3.2): positions ESD, USE, WSU, DSW, WND, UNW, ENU, DNE; per-position
@@ -43,10 +39,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bench.devices.orientation import code_matrix
 from bench.errors import DataFormatError
-from bench.fit.base import EARTH_RATE_DPH, Dataset
-from bench.fit.csvio import ORIENTATION_DEFAULT, validate_orientation
+from bench.fit.base import Dataset
+from bench.fit.csvio import ORIENTATION_DEFAULT
+from bench.signal import (  # noqa: F401  (earth_rate_enu / orientation_axes: re-exported for callers)
+    EARTH_RATE_DPH,
+    block_means,
+    earth_rate_body,
+    earth_rate_body_per_sample,
+    earth_rate_enu,
+    orientation_axes,
+    run_segments,
+    temperature_rate,
+)
 
 _BODY = {"x": 0, "y": 1, "z": 2}
 
@@ -97,45 +102,21 @@ def pauta_mask(x: np.ndarray, *, time: np.ndarray | None = None, window_s: float
 
 
 # ---------------------------------------------------------------------------------------- averaging
-def _segment_ids(ds: Dataset, period_s: float) -> np.ndarray:
-    t = ds.time
-    block = np.floor((t - t[0]) / float(period_s)).astype(np.int64)
-    change = np.zeros(len(t), dtype=bool)
-    if len(t):
-        change[0] = True
-        change[1:] = block[1:] != block[:-1]
-        if "orientation" in ds:
-            o = np.asarray(ds["orientation"])
-            change[1:] |= o[1:] != o[:-1]
-    return np.cumsum(change) - 1
-
-
 def block_average(ds: Dataset, period_s: float = 100.0, *, min_fraction: float = 0.5) -> Dataset:
-    """Average every numeric column over consecutive ``period_s`` blocks of time (aligned on the first
-    sample); a block is split where ``orientation`` changes.  NaNs are ignored per column; blocks with
-    fewer than ``min_fraction`` of the expected samples (from the median sample period) are dropped.
-    ``time_s`` becomes the mean time of the samples in the block.  ``meta['average_s']`` is set."""
+    """Average every numeric column over consecutive ``period_s`` blocks (``bench.signal.block_means``:
+    aligned on the first sample of each piece of the record, a piece ending where ``orientation``
+    changes; NaNs ignored per column; blocks with fewer than ``min_fraction`` of the piece's usual
+    sample count dropped).  ``time_s`` becomes the mean time of the samples in the block;
+    ``orientation`` the code of the block.  ``meta['average_s']`` is set."""
     if len(ds) == 0:
         return ds
-    seg = _segment_ids(ds, period_s)
-    nseg = int(seg[-1]) + 1
-    counts = np.bincount(seg, minlength=nseg)
-    dt = float(np.median(np.diff(ds.time))) if len(ds) > 1 else period_s
-    expected = max(1.0, period_s / dt)
-    keep_seg = counts >= min_fraction * min(expected, counts.max())
+    labels = np.asarray(ds["orientation"]) if "orientation" in ds else None
+    segments = run_segments(ds.time, labels, gap_factor=np.inf)
+    numeric = {name: col for name, col in ds.columns.items() if name != "orientation"}
+    res = block_means(ds.time, numeric, float(period_s), segments, min_fraction=min_fraction)
     cols: dict[str, np.ndarray] = {}
-    for name, col in ds.columns.items():
-        if name == "orientation":
-            first = np.r_[0, np.flatnonzero(np.diff(seg)) + 1]     # seg is non-decreasing
-            cols[name] = np.asarray(col)[first][keep_seg]
-            continue
-        v = np.asarray(col, dtype=np.float64)
-        ok = np.isfinite(v)
-        n = np.bincount(seg, ok.astype(np.float64), nseg)
-        s = np.bincount(seg, np.where(ok, v, 0.0), nseg)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(n > 0, s / np.maximum(n, 1), np.nan)
-        cols[name] = mean[keep_seg]
+    for name in ds.columns:
+        cols[name] = np.asarray(ds["orientation"])[res.first_index] if name == "orientation" else res.columns[name]
     meta = dict(ds.meta)
     meta["average_s"] = repr(float(period_s))
     return Dataset(cols, meta)
@@ -198,57 +179,8 @@ def bin_dataset_by_temperature(ds: Dataset, probe: str, bin_c: float = 0.5, min_
 
 # -------------------------------------------------------------------------------------------- rates
 def rate_c_per_min(time_s: np.ndarray, temp_c: np.ndarray, window_s: float = DEFAULT_RATE_WINDOW_S) -> np.ndarray:
-    """dT/dt in C/min: centred least-squares slope over ``window_s`` seconds (see module docstring)."""
-    t = np.asarray(time_s, dtype=np.float64)
-    x = np.asarray(temp_c, dtype=np.float64)
-    out = np.full(len(t), np.nan)
-    ok = np.isfinite(x) & np.isfinite(t)
-    if ok.sum() < 3:
-        return out
-    to, xo = t[ok], x[ok]
-    dt = float(np.median(np.diff(to)))
-    if dt <= 0:
-        raise ValueError("rate_c_per_min: time must increase")
-    half = max(1, int(round(window_s / dt / 2.0)))
-    grid = np.arange(to[0], to[-1] + dt / 2, dt)
-    if len(grid) < 2 * half + 1:
-        half = max(1, (len(grid) - 1) // 2)
-    if len(grid) < 3:
-        return out
-    xg = np.interp(grid, to, xo)
-    slope = _centred_slope(xg, half) / dt
-    rate = np.interp(t, grid, slope) * 60.0
-    # samples near a gap longer than half the window: the filter saw interpolated, not measured data
-    gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
-    for g in gaps:
-        lo, hi = to[g], to[g + 1]
-        out_mask = (t > lo - window_s / 2.0 + dt) & (t < hi + window_s / 2.0 - dt) & (hi - lo > window_s / 2.0)
-        rate[out_mask] = np.nan
-    rate[(t < to[0]) | (t > to[-1])] = np.nan
-    out[:] = rate
-    return out
-
-
-def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
-    """Least-squares slope (per sample) over x[i-half .. i+half], O(n) with cumulative sums; at the
-    ends the slope of the first / last full window is used (= Savitzky-Golay polyorder 1, deriv 1,
-    mode "interp")."""
-    n = len(x)
-    w = 2 * half + 1
-    xc = x - x.mean()                       # keep cumulative sums small
-    j = np.arange(n, dtype=np.float64) - n / 2.0
-    c0 = np.concatenate([[0.0], np.cumsum(xc)])
-    c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
-    centre = np.arange(half, n - half)
-    s0 = c0[centre + half + 1] - c0[centre - half]
-    s1 = c1[centre + half + 1] - c1[centre - half]
-    num = s1 - j[centre] * s0                # sum over k of k * x[i+k]
-    den = half * (half + 1) * w / 3.0        # sum over k of k^2
-    out = np.empty(n)
-    out[half:n - half] = num / den
-    out[:half] = out[half]
-    out[n - half:] = out[n - half - 1]
-    return out
+    """dT/dt in C/min: ``bench.signal.temperature_rate`` with the ``"centred_slope"`` method."""
+    return temperature_rate(time_s, temp_c, window_s, method="centred_slope")
 
 
 def add_rates(ds: Dataset, window_s: float = DEFAULT_RATE_WINDOW_S, names: list[str] | None = None) -> Dataset:
@@ -266,22 +198,6 @@ def gradient(ds: Dataset, a: str, b: str) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------- Earth rate
-def orientation_axes(code: str) -> np.ndarray:
-    """(3,3) array; row i = unit vector of body axis i (x, y, z) in ENU for an orientation code."""
-    validate_orientation(code)
-    return code_matrix(code).T
-
-
-def earth_rate_enu(latitude_deg: float) -> np.ndarray:
-    lat = np.radians(latitude_deg)
-    return EARTH_RATE_DPH * np.array([0.0, np.cos(lat), np.sin(lat)])
-
-
-def earth_rate_body(code: str, latitude_deg: float) -> np.ndarray:
-    """Earth rate read by body axes x, y, z (deg/h) in orientation ``code``."""
-    return orientation_axes(code) @ earth_rate_enu(latitude_deg)
-
-
 def _latitude(ds: Dataset, latitude_deg: float | None) -> float:
     if latitude_deg is not None:
         return float(latitude_deg)
@@ -299,12 +215,7 @@ def _orientation_codes(ds: Dataset) -> np.ndarray:
 
 def body_earth_rates(ds: Dataset, latitude_deg: float | None = None) -> np.ndarray:
     """(n, 3) Earth rate on body x, y, z per sample (deg/h) from orientation and latitude."""
-    lat = _latitude(ds, latitude_deg)
-    codes = _orientation_codes(ds)
-    out = np.empty((len(ds), 3))
-    for code in set(codes.tolist()):
-        out[codes == code] = earth_rate_body(code, lat)
-    return out
+    return earth_rate_body_per_sample(_orientation_codes(ds), _latitude(ds, latitude_deg), ORIENTATION_DEFAULT)
 
 
 def default_axis(channel: str) -> np.ndarray:

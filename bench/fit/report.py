@@ -22,7 +22,14 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from bench.fit.base import Dataset, FitResult
-from bench.fit.fog import block_average, run_segments, smoothed_and_rate
+from bench.signal import (
+    DEFAULT_RATE_METHOD,
+    allan_deviation,
+    block_means,
+    run_segments,
+    smoothed_temperature,
+    temperature_rate,
+)
 
 Prediction = tuple[np.ndarray, np.ndarray]
 PredictFn = Callable[[FitResult, Dataset], Prediction]
@@ -103,23 +110,20 @@ def plot_residuals(residual: np.ndarray, x: np.ndarray, xlabel: str, title: str,
     return figure_to_img(fig, title)
 
 
-def allan(series: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
-    """Overlapping Allan deviation of a rate series (allantools oadev, data_type="freq", octave taus)."""
-    import allantools
-
-    x = np.asarray(series, float)
-    if x.size < 4:
+def _adev_or_empty(series: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """``bench.signal.allan_deviation`` (taus, adev); empty when the series is too short to have one."""
+    try:
+        taus, devs, _, _ = allan_deviation(series, rate_hz)
+    except ValueError:
         return np.zeros(0), np.zeros(0)
-    taus, devs, _, _ = allantools.oadev(x, rate=rate_hz, data_type="freq", taus="octave")
-    ok = np.isfinite(devs) & (devs > 0)
-    return np.asarray(taus)[ok], np.asarray(devs)[ok]
+    return taus, devs
 
 
 def plot_adev(series: dict[str, np.ndarray], rate_hz: float, title: str = "Allan deviation",
               unit: str = "deg/h") -> str:
     fig, ax = _new_figure(title, "tau (s)", f"Allan deviation ({unit})")
     for label, values in series.items():
-        taus, devs = allan(values, rate_hz)
+        taus, devs = _adev_or_empty(values, rate_hz)
         if taus.size:
             ax.loglog(taus, devs, marker=".", lw=1, label=label)
     ax.legend(loc="best", fontsize=8)
@@ -169,10 +173,9 @@ def series_metrics(time_s: np.ndarray, values: np.ndarray, window_s: float = 100
     t, v = t[ok], v[ok]
     if v.size == 0:
         return {"rms": float("nan"), "p2p": float("nan"), "std100": float("nan"), "adev_min": float("nan")}
-    _, cols, _ = block_average(t, {"v": v}, window_s, run_segments(t))
-    means = cols["v"]
+    means = block_means(t, {"v": v}, window_s, run_segments(t)).columns["v"]
     step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
-    _, devs = allan(v, 1.0 / step if step > 0 else 1.0)
+    _, devs = _adev_or_empty(v, 1.0 / step if step > 0 else 1.0)
     return {"rms": float(np.sqrt(np.mean(v ** 2))), "p2p": float(v.max() - v.min()),
             "std100": float(np.std(means, ddof=1)) if means.size > 1 else float("nan"),
             "adev_min": float(devs.min()) if devs.size else float("nan")}
@@ -191,6 +194,18 @@ def _temperature_for(result: FitResult, dataset: Dataset) -> tuple[np.ndarray | 
     if names:
         return np.asarray(dataset[f"temp_{names[0]}"], float), f"temp_{names[0]}"
     return None, ""
+
+
+def _rate_regressor(result: FitResult) -> tuple[str, float]:
+    """(rate method, window s) of the dT/dt the model used (``definition["rate_method"]`` and
+    ``["rate_window_s"]``; results stored before these keys: the linear models' ``rate_filter`` window
+    with the centred slope, the savgol2 models' ``average_s``)."""
+    d = result.definition
+    if "rate_method" in d:
+        return str(d["rate_method"]), float(d["rate_window_s"])
+    if isinstance(d.get("rate_filter"), dict):
+        return DEFAULT_RATE_METHOD, float(d["rate_filter"]["window_s"])
+    return "savgol2", float(d.get("average_s", 100.0) or 100.0)
 
 
 def _unit_of(result: FitResult) -> str:
@@ -226,13 +241,18 @@ def _dataset_section(label: str, result: FitResult, dataset: Dataset, pred: Pred
     temp, temp_label = _temperature_for(result, dataset)
     if temp is not None:
         segs = run_segments(t, dataset.columns.get("run"))
-        window = float(result.definition.get("average_s", 100.0) or 100.0)
+        method, window = _rate_regressor(result)
         finite = np.isfinite(temp)
         if finite.sum() >= 2 and not finite.all():    # missed probe readings: bridge them for the plot
             temp = np.interp(t, t[finite], temp[finite])
-        smooth, rate = smoothed_and_rate(t, temp, window, segs)
-        parts.append(plot_residuals(residual, smooth, f"{temp_label} (C)", f"{name}: residual vs T", unit, flagged))
-        parts.append(plot_residuals(residual, rate, "dT/dt (C/min)", f"{name}: residual vs dT/dt", unit, flagged))
+        # the x axes are the regressors the model used: its temperature (smoothed by the savgol2 models)
+        # and its dT/dt with the model's own rate method and window
+        if method == "savgol2":
+            temp = smoothed_temperature(t, temp, window, segs)
+        rate = temperature_rate(t, temp, window, method=method, segments=segs)
+        rate_label = f"dT/dt (C/min, {method} over {window:g} s)"
+        parts.append(plot_residuals(residual, temp, f"{temp_label} (C)", f"{name}: residual vs T", unit, flagged))
+        parts.append(plot_residuals(residual, rate, rate_label, f"{name}: residual vs dT/dt", unit, flagged))
     step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     parts.append(plot_adev({"raw": measured, "compensated": residual}, 1.0 / step if step > 0 else 1.0,
                            f"{name}: Allan deviation", unit))

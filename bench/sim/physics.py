@@ -35,9 +35,8 @@ from typing import Callable, Sequence
 import numpy as np
 from scipy.signal import lfilter
 
-from bench.devices.orientation import OrientationError, code_matrix
 from bench.errors import PlanError
-from bench.fit.base import EARTH_RATE_DPH
+from bench.signal.geometry import OrientationError, code_matrix, earth_rate_enu, validate_canonical_code
 from bench.sim.noise import STREAM_ACCEL, STREAM_FREQ, CorrelatedNoise, RandomStepLevels, WhiteNoise, stream_rng
 from bench.sim.scenario import ChannelBias, ChannelNoise, Factor, Scenario, ThermalNetwork, parse_term
 
@@ -104,20 +103,13 @@ def orientation_matrix(code: str) -> np.ndarray:
     """Body-to-level rotation for an orientation code such as ``NUE`` (body x North, y Up, z East).
 
     Letters as in seed 000's eight-position test and the measured-data CSV; columns = body axes in
-    ENU (``bench.devices.orientation.code_matrix``).  Raises PlanError for anything that is not an
+    ENU (``bench.signal.geometry.code_matrix``).  Raises PlanError for anything that is not an
     upper-case right-handed code.
     """
-    if not isinstance(code, str) or code != code.strip().upper():
-        raise PlanError(f"orientation {code!r}: need three upper-case letters from E W N S U D")
     try:
-        return code_matrix(code)
+        return code_matrix(validate_canonical_code(code))
     except OrientationError as exc:
         raise PlanError(str(exc)) from None
-
-
-def earth_rate_enu_dph(latitude_deg: float) -> np.ndarray:
-    lat = math.radians(latitude_deg)
-    return EARTH_RATE_DPH * np.array([0.0, math.cos(lat), math.sin(lat)])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -355,7 +347,7 @@ class GyroPhysics:
         self._steps = RandomStepLevels(steps, seed, self.clock_start, len(steps.channels)) if steps else None
         inst = eff.installation
         self._install = np.array(inst.matrix, dtype=float) if inst else np.eye(3)
-        self._earth_enu = earth_rate_enu_dph(sc.latitude_deg)
+        self._earth_enu = earth_rate_enu(sc.latitude_deg)
         self._probe_idx = {p: self._node_idx[n] for p, n in sc.probes.items()}
         self._sensor_idx = self.node_index(sc.sensor_node)
         self._own_idx = [self.node_index(sc.channel_nodes[ch]) for ch in self.channels]

@@ -1,0 +1,137 @@
+"""Temperature rate dT/dt in C/min, time first: ``temperature_rate(time_s, temp_c, window_s, method=...)``.
+
+Two filters, each named wherever a result uses it (``definition["rate_method"]``):
+
+* ``"centred_slope"`` (default; the linear models' ``rate_window_s`` terms, close-the-loop): the
+  centred least-squares slope over ``window_s`` seconds (Savitzky-Golay first derivative, polyorder 1,
+  which equals polyorder 2 at the window centre), computed on the series linearly resampled to a
+  uniform grid at the median sample period; samples whose window is not covered by data (a gap longer
+  than ``window_s/2``) get NaN, as do samples outside the measured span.  Calibration-notes lesson 9.
+* ``"savgol2"`` (FOG and HRG models, seed 004: the rate "by differencing the 100-s smoothed
+  temperature"): Savitzky-Golay order 2 over ``window_s`` per segment when the window spans >= 3
+  samples, else central differences (``np.gradient``); never NaN (a segment of one sample gets 0).
+
+``segments`` (see ``bench.signal.segments``) are filtered separately; by default the whole record is
+one segment for ``savgol2`` and ``centred_slope`` handles gaps itself.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.signal import savgol_filter
+
+RATE_METHODS = ("centred_slope", "savgol2")
+DEFAULT_RATE_METHOD = "centred_slope"
+
+
+def check_rate_method(method: str) -> str:
+    if method not in RATE_METHODS:
+        raise ValueError(f"rate method {method!r} unknown (known: {', '.join(RATE_METHODS)})")
+    return method
+
+
+def temperature_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float, method: str = DEFAULT_RATE_METHOD,
+                     segments: list[slice] | None = None) -> np.ndarray:
+    """dT/dt in C/min of ``temp_c`` (C) sampled at ``time_s`` (s), filtered over ``window_s`` (s) with
+    ``method`` (one of ``RATE_METHODS``, see the module docstring)."""
+    check_rate_method(method)
+    if method == "savgol2":
+        return _savgol(time_s, temp_c, window_s, segments)[1]
+    if segments is None:
+        return _centred_slope_rate(time_s, temp_c, window_s)
+    t = np.asarray(time_s, dtype=np.float64)
+    out = np.full(t.size, np.nan)
+    for seg in segments:
+        out[seg] = _centred_slope_rate(t[seg], np.asarray(temp_c, dtype=np.float64)[seg], window_s)
+    return out
+
+
+def smoothed_temperature(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
+                         segments: list[slice] | None = None) -> np.ndarray:
+    """Temperature (C) smoothed by the ``savgol2`` filter (Savitzky-Golay order 2 over ``window_s``)."""
+    return _savgol(time_s, temp_c, window_s, segments)[0]
+
+
+def smoothed_temperature_and_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
+                                  segments: list[slice] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(``smoothed_temperature``, ``temperature_rate(method="savgol2")``) in one pass: (C, C/min)."""
+    return _savgol(time_s, temp_c, window_s, segments)
+
+
+def _savgol(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
+            segments: list[slice] | None) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(time_s, float)
+    x = np.asarray(temp_c, float)
+    if segments is None:
+        segments = [slice(0, t.size)]
+    smooth = x.copy()
+    rate = np.zeros_like(x)
+    for seg in segments:
+        ts, xs = t[seg], x[seg]
+        if xs.size < 2:
+            continue
+        step = float(np.median(np.diff(ts)))
+        if step <= 0:
+            step = 1.0
+        w = int(round(window_s / step)) if window_s > 0 else 1
+        w = min(w, xs.size if xs.size % 2 else xs.size - 1)
+        if w % 2 == 0:
+            w -= 1
+        if w >= 3:
+            smooth[seg] = savgol_filter(xs, w, 2, mode="interp")
+            rate[seg] = savgol_filter(xs, w, 2, deriv=1, delta=step / 60.0, mode="interp")
+        else:
+            rate[seg] = np.gradient(xs, ts / 60.0, edge_order=2 if xs.size >= 3 else 1)
+    return smooth, rate
+
+
+def _centred_slope_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> np.ndarray:
+    t = np.asarray(time_s, dtype=np.float64)
+    x = np.asarray(temp_c, dtype=np.float64)
+    out = np.full(len(t), np.nan)
+    ok = np.isfinite(x) & np.isfinite(t)
+    if ok.sum() < 3:
+        return out
+    to, xo = t[ok], x[ok]
+    dt = float(np.median(np.diff(to)))
+    if dt <= 0:
+        raise ValueError("temperature_rate: time must increase")
+    half = max(1, int(round(window_s / dt / 2.0)))
+    grid = np.arange(to[0], to[-1] + dt / 2, dt)
+    if len(grid) < 2 * half + 1:
+        half = max(1, (len(grid) - 1) // 2)
+    if len(grid) < 3:
+        return out
+    xg = np.interp(grid, to, xo)
+    slope = _centred_slope(xg, half) / dt
+    rate = np.interp(t, grid, slope) * 60.0
+    # samples near a gap longer than half the window: the filter saw interpolated, not measured data
+    gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
+    for g in gaps:
+        lo, hi = to[g], to[g + 1]
+        out_mask = (t > lo - window_s / 2.0 + dt) & (t < hi + window_s / 2.0 - dt) & (hi - lo > window_s / 2.0)
+        rate[out_mask] = np.nan
+    rate[(t < to[0]) | (t > to[-1])] = np.nan
+    out[:] = rate
+    return out
+
+
+def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
+    """Least-squares slope (per sample) over x[i-half .. i+half], O(n) with cumulative sums; at the
+    ends the slope of the first / last full window is used (= Savitzky-Golay polyorder 1, deriv 1,
+    mode "interp")."""
+    n = len(x)
+    w = 2 * half + 1
+    xc = x - x.mean()                       # keep cumulative sums small
+    j = np.arange(n, dtype=np.float64) - n / 2.0
+    c0 = np.concatenate([[0.0], np.cumsum(xc)])
+    c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
+    centre = np.arange(half, n - half)
+    s0 = c0[centre + half + 1] - c0[centre - half]
+    s1 = c1[centre + half + 1] - c1[centre - half]
+    num = s1 - j[centre] * s0                # sum over k of k * x[i+k]
+    den = half * (half + 1) * w / 3.0        # sum over k of k^2
+    out = np.empty(n)
+    out[half:n - half] = num / den
+    out[:half] = out[half]
+    out[n - half:] = out[n - half - 1]
+    return out
