@@ -1,7 +1,8 @@
 """Reading a gyro's coefficients (shared by ``GET /gyros/{id}/coefficients`` and ``bench coefficients``).
 
 The answer holds, per model, the latest *accepted* version (or the requested ``version``), with each
-channel's coefficients, units, validity range and model definition.  One indexed query on
+channel's coefficients, units, probe (the temperature probe the channel's model is built on),
+validity range and model definition.  One indexed query on
 ``fits (gyro_id, model, channel, version)``.
 """
 from __future__ import annotations
@@ -48,5 +49,6 @@ def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
         m["fit_id"] = min(m["fit_id"], r.id)
         res = r.result or {}
         m["channels"][r.channel] = {"coefficients": r.coefficients, "units": res.get("units"),
+                                    "probe": (res.get("definition") or {}).get("probe"),
                                     "validity": res.get("validity"), "definition": res.get("definition")}
     return {"gyro_id": gyro_id, "models": list(models.values())}

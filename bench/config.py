@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from bench.errors import DataFormatError
 
@@ -77,6 +77,10 @@ class GyroConfig(_Strict):
     temp_scale: float = Field(0.01, gt=0)
     reconnect_s: float = Field(0.5, gt=0)       # wall seconds between reconnect attempts
     channels: tuple[str, ...] = ("x", "y", "z")
+    # channel -> the probe position name (a key of ``probes.probes``) glued at that channel's own
+    # temperature (S000 eq 4 uses t_i for channel i); recorded with every run, exported as the CSV
+    # line ``# channel_probes: x=t1,y=t2,z=t3``; fits use it as each channel's default probe
+    channel_probes: dict[str, str] = Field(default_factory=dict)
 
 
 class ProbeConfig(_Strict):
@@ -119,6 +123,17 @@ class BenchConfig(_Strict):
     safe_state: SafeStateConfig = SafeStateConfig()
     gyro_limits: GyroLimits = GyroLimits()
 
+    @model_validator(mode="after")
+    def _check_channel_probes(self) -> "BenchConfig":
+        for ch, probe in self.gyro.channel_probes.items():
+            if ch not in self.gyro.channels:
+                raise ValueError(f"gyro.channel_probes: unknown channel {ch!r} (gyro.channels: "
+                                 f"{', '.join(self.gyro.channels)})")
+            if probe not in self.probes.probes:
+                raise ValueError(f"gyro.channel_probes.{ch}: {probe!r} is not a configured probe (probes.probes: "
+                                 f"{', '.join(sorted(self.probes.probes)) or 'none'})")
+        return self
+
     @classmethod
     def load(cls, path: str | Path) -> "BenchConfig":
         path = Path(path)
@@ -133,7 +148,8 @@ class BenchConfig(_Strict):
         except ValidationError as exc:
             first = exc.errors()[0]
             loc = ".".join(str(p) for p in first["loc"])
-            raise DataFormatError(f"{first['msg']}", column=loc, source=str(path)) from None
+            msg = first["msg"].removeprefix("Value error, ")
+            raise DataFormatError(msg, column=loc or None, source=str(path)) from None
 
     def dump(self, path: str | Path) -> None:
         tmp = Path(str(path) + ".tmp")

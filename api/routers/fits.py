@@ -40,7 +40,8 @@ def _group_doc(rows: list[Fit], *, full: bool = True) -> dict[str, Any]:
                            "created_at": iso(first.created_at), "run_ids": first.run_ids}
     channels: dict[str, Any] = {}
     for r in sorted(rows, key=lambda r: r.channel):
-        entry: dict[str, Any] = {"coefficients": r.coefficients, "units": (r.result or {}).get("units")}
+        entry: dict[str, Any] = {"coefficients": r.coefficients, "units": (r.result or {}).get("units"),
+                                 "probe": ((r.result or {}).get("definition") or {}).get("probe")}
         if full:
             res = r.result or {}
             entry.update(definition=res.get("definition"), validity=res.get("validity"), stats=res.get("stats"),
@@ -100,6 +101,16 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
         offset += float(d.columns["time_s"][-1]) + RUN_GAP_S
     meta = dict(datasets[0].meta)
     meta["run_id"] = ",".join(str(r) for r in run_ids)
+    maps = {rid: d.meta.get("channel_probes") or {} for rid, d in zip(run_ids, datasets)}
+    merged_map: dict[str, str] = {}
+    for rid, mapping in maps.items():
+        for ch, probe in mapping.items():
+            if merged_map.setdefault(ch, probe) != probe:
+                raise Problem(422, "Runs disagree on channel probes",
+                              f"channel {ch}: probe {probe} in run {rid}, {merged_map[ch]} in an earlier run of "
+                              f"{run_ids}")
+    if merged_map:
+        meta["channel_probes"] = merged_map
     if any("latitude_deg" not in d.meta for d in datasets):
         meta.pop("latitude_deg", None)
     return Dataset({k: np.concatenate(v) for k, v in merged.items()}, meta), gyro_ids.pop()

@@ -20,8 +20,10 @@ import typer
 from bench.commands.common import fail, guarded
 
 GYRO_ID = "DEMO-RLG-001"
-# the declared model: S000's dynamic model with the static cubic (the simulated RLG's own form)...
-DECLARED = "t1 + t1^2 + t1^3 + (t1-t3) + dt1"
+# the declared model: S000's dynamic model with the static cubic, each channel in its own probe t_i
+# (``tc``; the bench declares x=t1, y=t2, z=t3), which is the simulated RLG's own form: its channels
+# depend on t1, t2, t3 with the gradients (t1-t3), (t2-t4) and (t3-t1) = -(t1-t3)...
+DECLARED = "tc + tc^2 + tc^3 + (t1-t3) + (t2-t4) + dtc"
 # ...and the simulated gyro has one effect it lacks: a warm-up drift after power-on (S004), which
 # close-the-loop has to find on its own
 WARMUP = {"tau_s": 1200.0, "amplitude_dph": {"x": 0.25, "y": 0.15, "z": -0.2}}
@@ -94,7 +96,7 @@ def demo_command(
         for model in coeff.get("models", [coeff]):
             for ch, entry in (model.get("channels") or {}).items():
                 terms = ", ".join(f"{k}={v:.4g}" for k, v in entry["coefficients"].items())
-                typer.echo(f"  {model.get('model', 'dynamic')} / {ch}: {terms}")
+                typer.echo(f"  {model.get('model', 'dynamic')} / {ch} (probe {entry.get('probe')}): {terms}")
 
         job = _ok(http.post("/close-loop", json={"model": DECLARED, "train_run_id": train_id,
                                                  "validation_run_id": val_id}))

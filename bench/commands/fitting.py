@@ -94,7 +94,9 @@ def fit_command(
     if json_out != "-":
         for ch, entry in doc["channels"].items():
             tr, va = entry.get("train", {}), entry.get("validation")
-            line = f"{ch}: train rms {tr.get('rms_dph')}, std100 {tr.get('std100_dph')}"
+            probe = (entry.get("definition") or {}).get("probe")
+            label = f"{ch} (probe {probe})" if probe else ch
+            line = f"{label}: train rms {tr.get('rms_dph')}, std100 {tr.get('std100_dph')}"
             if va:
                 line += f"; validation rms {va.get('rms_dph')}, std100 {va.get('std100_dph')}"
             typer.echo(line)

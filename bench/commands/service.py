@@ -211,6 +211,8 @@ def import_dataset(db, dataset, gyro_id: str, *, source: str = "", bench_name: s
     values, not bytes received from a device, which the run's ``config_snapshot.import`` says), each
     ``temp_<name>`` a probe reading, ``chamber_pv``/``chamber_sp`` chamber telemetry, ``power``
     PSU on/off, and each stretch of constant ``orientation`` a ``record`` segment labelled with it.
+    The CSV's ``channel_probes`` (channel -> own probe) goes into the snapshot's ``gyro.channel_probes``
+    like a bench config's, so fits of the run use it.
     """
     import numpy as np
 
@@ -240,8 +242,14 @@ def import_dataset(db, dataset, gyro_id: str, *, source: str = "", bench_name: s
     probes = dataset.temp_names()
     first_temp = np.asarray(cols[f"temp_{probes[0]}"], dtype=np.float64) if probes else np.full(n, np.nan)
     meta = dict(dataset.meta)
+    for ch, probe in (meta.get("channel_probes") or {}).items():
+        if ch not in channels or probe not in probes:
+            raise DataFormatError(f"metadata channel_probes: {ch}={probe} names a "
+                                  + (f"channel without a gyro_{ch} column" if ch not in channels
+                                     else f"probe without a temp_{probe} column"), source=source)
     snapshot = {"name": bench_name or "import", "latitude_deg": float(meta.get("latitude_deg", 45.75)),
-                "gyro": {"frame": "kvh_a", "output_units": "deg/s", "channels": channels},
+                "gyro": {"frame": "kvh_a", "output_units": "deg/s", "channels": channels,
+                         "channel_probes": dict(meta.get("channel_probes") or {})},
                 "import": {"source": source, "rows": n, "meta": meta,
                            "note": "frames re-encoded from the CSV values (KVH Format A layout)"}}
     with db.session() as s:

@@ -1,7 +1,12 @@
 """Shared types of the fitting module.  Pure data; no I/O.
 
 A *dataset* is a ``Dataset``: named 1-D float arrays of equal length (``time_s``, ``gyro_x``,
-``temp_t1``, ``freq_x``, ``orientation`` (array of str), ...) plus metadata from the CSV header.
+``temp_t1``, ``freq_x``, ``orientation`` (array of str), ...) plus metadata from the CSV header
+(text values, except ``meta["channel_probes"]``: a dict channel -> the name of that channel's own
+temperature probe, e.g. ``{"x": "t1", "y": "t2", "z": "t3"}``; CSV line ``# channel_probes: x=t1,y=t2,z=t3``).
+
+``channel_probe(ds, channel)`` is the one answer to "which probe is this channel's own": the map's
+probe, else the channel's name when it is also a probe name, else the first probe.
 
 Every model fit returns a ``FitResult``; ``bench.fit.catalog.predict(result, dataset)`` evaluates it
 on new data and returns the predicted bias and a boolean ``flagged`` array (outside the validity
@@ -9,11 +14,13 @@ range: clipped or refused, never silently extrapolated).
 """
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
+from bench.errors import DataFormatError
 from bench.jsonsafe import jsonable
 from bench.signal.geometry import EARTH_RATE_DPH  # noqa: F401  (re-exported; defined in bench.signal)
 
@@ -21,7 +28,7 @@ from bench.signal.geometry import EARTH_RATE_DPH  # noqa: F401  (re-exported; de
 @dataclass
 class Dataset:
     columns: dict[str, np.ndarray]
-    meta: dict[str, str] = field(default_factory=dict)
+    meta: dict[str, Any] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return len(self.columns["time_s"]) if "time_s" in self.columns else 0
@@ -52,6 +59,57 @@ class Dataset:
         merged = dict(self.columns)
         merged.update(cols)
         return Dataset(merged, dict(self.meta))
+
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9_]+$")
+
+
+def parse_channel_probes(text: str) -> dict[str, str]:
+    """``"x=t1,y=t2,z=t3"`` -> ``{"x": "t1", "y": "t2", "z": "t3"}``; ValueError naming the bad part."""
+    out: dict[str, str] = {}
+    for part in str(text).split(","):
+        item = part.strip()
+        if not item:
+            raise ValueError(f"channel_probes {text!r}: empty item (write channel=probe pairs joined by ',')")
+        ch, sep, probe = (s.strip() for s in item.partition("="))
+        if not sep or not _NAME_RE.match(ch) or not _NAME_RE.match(probe):
+            raise ValueError(f"channel_probes {text!r}: cannot read {item!r} (write channel=probe, names of "
+                             f"letters, digits or _)")
+        if ch in out:
+            raise ValueError(f"channel_probes {text!r}: channel {ch!r} given twice")
+        out[ch] = probe
+    return out
+
+
+def format_channel_probes(mapping: dict[str, str]) -> str:
+    """``{"x": "t1", "y": "t2"}`` -> ``"x=t1,y=t2"`` (the CSV metadata form; round-trips with the parser)."""
+    text = ",".join(f"{ch}={probe}" for ch, probe in mapping.items())
+    parse_channel_probes(text)
+    return text
+
+
+def default_probe(ds: Dataset, channel: str) -> str:
+    """The probe a channel uses when no map says otherwise: a probe named like the channel, else the
+    first probe of the data."""
+    names = ds.temp_names()
+    if not names:
+        raise DataFormatError("no temp_<name> column in data")
+    return channel if channel in names else names[0]
+
+
+def channel_probe(ds: Dataset, channel: str) -> str:
+    """The channel's own temperature probe: ``ds.meta["channel_probes"][channel]`` when the data
+    declares it (bench config / run metadata / CSV ``# channel_probes:`` line), else
+    ``default_probe``.  A mapped probe without a ``temp_<probe>`` column is an error."""
+    mapping = ds.meta.get("channel_probes") or {}
+    if channel not in mapping:
+        return default_probe(ds, channel)
+    probe = mapping[channel]
+    if f"temp_{probe}" not in ds:
+        raise DataFormatError(f"channel {channel!r}: its probe {probe!r} (metadata channel_probes "
+                              f"{format_channel_probes(mapping)}) has no column temp_{probe} in the data "
+                              f"(probes: {', '.join(ds.temp_names()) or 'none'})", column=f"temp_{probe}")
+    return probe
 
 
 @dataclass

@@ -3,7 +3,10 @@
 Format (issue "measured-data CSV v1"):
 
 * Optional leading metadata lines ``# key: value`` (``gyro_id``, ``gyro_type``, ``latitude_deg``,
-  ``sample_period_s`` and any other key).  A leading ``#`` line without ``key:`` is a free note; notes
+  ``sample_period_s``, ``channel_probes`` and any other key).  ``channel_probes`` maps each channel to
+  its own temperature probe (``# channel_probes: x=t1,y=t2,z=t3``) and is read into
+  ``meta["channel_probes"]`` as a dict (every other value stays text).  A leading ``#`` line without
+  ``key:`` is a free note; notes
   are joined with newlines into ``meta["notes"]`` (the writer emits ``meta["notes"]`` as ``# notes: ...``
   lines, one per note line, so a read/write/read cycle gives the same ``meta``).
 * One header row, then data rows, comma separated.
@@ -40,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.errors import DataFormatError
-from bench.fit.base import Dataset
+from bench.fit.base import Dataset, format_channel_probes, parse_channel_probes
 from bench.signal.geometry import DEFAULT_ORIENTATION, validate_canonical_code
 
 ORIENTATION_DEFAULT = DEFAULT_ORIENTATION
@@ -104,6 +107,12 @@ def parse_csv_text(text: str, *, source: str = "<text>") -> Dataset:
                         except ValueError:
                             raise DataFormatError(f"metadata {key!r} must be a finite number, got {value!r}",
                                                   line=i + 1, source=source) from None
+                    if key == "channel_probes":
+                        try:
+                            meta[key] = parse_channel_probes(value)
+                        except ValueError as exc:
+                            raise DataFormatError(str(exc), line=i + 1, source=source) from None
+                        continue
                     meta[key] = value
             else:
                 notes.append(line[1:].strip())
@@ -270,6 +279,12 @@ def format_csv(dataset: Dataset) -> str:
         if key == "notes":
             for note in str(value).split("\n"):
                 out.write(f"# notes: {note}\n")
+        elif key == "channel_probes":
+            try:
+                mapping = parse_channel_probes(value) if isinstance(value, str) else dict(value)
+                out.write(f"# channel_probes: {format_channel_probes(mapping)}\n")
+            except (TypeError, ValueError) as exc:
+                raise DataFormatError(f"metadata 'channel_probes': {exc}", source="dataset to write") from None
         else:
             if "\n" in str(value) or not re.match(r"^[A-Za-z_][A-Za-z0-9_]*$", key):
                 raise DataFormatError(f"metadata {key!r}: key must be an identifier and value one line",

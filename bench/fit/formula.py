@@ -20,6 +20,12 @@ computed before averaging by ``prep.add_rates``; otherwise computed with
 ``bench.signal.temperature_rate(time_s, temp_X, rate_window_s, method="centred_slope")``);
 otherwise the column named ``X`` itself (e.g. ``lag_t1_600`` added by the close-loop helper, ``chamber_pv``).
 
+The channel's own probe: ``tc`` stands for it and ``dtc`` for its rate, anywhere an atom may stand
+(``tc^2``, ``(tc-t4)``, ``(tc-25)*dtc``).  They are resolved per channel when the formula is compiled
+(``channel_probe="t2"``: ``tc`` -> ``temp_t2``, ``dtc`` -> dT2/dt), so the resolved terms and the
+export name the real probe; a formula with ``tc`` compiled without a channel probe is refused, and so
+is data with a probe literally named ``tc``.
+
 Each parsed node is a JSON-able dict, which is also the firmware evaluation recipe::
 
     {"op": "temp",   "column": "temp_t1"}                        value of the column (C)
@@ -32,8 +38,10 @@ Each parsed node is a JSON-able dict, which is also the firmware evaluation reci
 Public API::
 
     parse_formula(text) -> list[Node]           (unresolved: atoms are {"op": "atom", "name": ...})
-    compile_formula(text, columns, *, rate_window_s=120.0, target_unit="deg/h") -> CompiledFormula
-    compile_terms(terms: list[(coef_name, expr_text)], columns, ...) -> CompiledFormula
+    compile_formula(text, columns, *, rate_window_s=120.0, target_unit="deg/h", channel_probe=None)
+        -> CompiledFormula
+    compile_terms(terms: list[(coef_name, expr_text)], columns, ..., channel_probe=None) -> CompiledFormula
+    uses_channel_probe(text) -> bool            (does the formula say ``tc`` / ``dtc``?)
     CompiledFormula.design(ds, clip=None) -> (X with intercept column first, flagged bool array)
     CompiledFormula.signal_ranges(ds) -> {signal_key: [min, max]}
     evaluate_node(node, signals: dict[key, array]) -> array;  node_text(node) -> str
@@ -52,6 +60,7 @@ from bench.fit.base import Dataset
 from bench.signal import temperature_rate
 
 Node = dict[str, Any]
+CHANNEL_PROBE = "tc"                    # placeholder: the channel's own probe (``dtc``: its rate)
 _TOKEN = re.compile(r"\s*(?:(?P<num>\d+(?:\.\d*)?(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)"
                     r"|(?P<id>[A-Za-z_][A-Za-z0-9_]*)|(?P<op>[-+*^()]))")
 _COLUMN_UNITS = {"chamber_pv": "C", "chamber_sp": "C", "table_rate_dps": "deg/s", "power": "1", "time_s": "s"}
@@ -235,8 +244,39 @@ def resolve_atom(name: str, columns: Iterable[str], rate_window_s: float) -> Nod
     raise KeyError(name)
 
 
-def _resolve(node: Node, columns: set[str], rate_window_s: float, text: str) -> Node:
+def _placeholder_target(name: str, channel_probe: str | None, columns: set[str], text: str) -> str | None:
+    """``tc`` -> the channel probe's name, ``dtc`` -> ``d<probe>``; None for any other atom."""
+    if name not in (CHANNEL_PROBE, f"d{CHANNEL_PROBE}"):
+        return None
+    pos = _atom_position(text, name)
+    if f"temp_{CHANNEL_PROBE}" in columns:
+        raise FormulaError(text, pos, f"{name!r} is the placeholder for the channel's own probe, but the data "
+                                      f"has a probe named {CHANNEL_PROBE!r}: rename that probe")
+    if channel_probe is None:
+        raise FormulaError(text, pos, f"{name!r} stands for the channel's own probe, and none is known here "
+                                      "(fit per channel: the data's channel_probes metadata or probe=...)")
+    if f"temp_{channel_probe}" not in columns:
+        temps = sorted(c[5:] for c in columns if c.startswith("temp_"))
+        raise FormulaError(text, pos, f"{name!r}: the channel's probe {channel_probe!r} has no column "
+                                      f"temp_{channel_probe} (probes: {', '.join(temps) or 'none'})")
+    return channel_probe if name == CHANNEL_PROBE else f"d{channel_probe}"
+
+
+def uses_channel_probe(text: str) -> bool:
+    """True when the formula names the channel's own probe (``tc`` or ``dtc``)."""
+    def walk(node: Node) -> bool:
+        if node["op"] == "atom":
+            return node["name"] in (CHANNEL_PROBE, f"d{CHANNEL_PROBE}")
+        return any(walk(a) for a in node.get("args", []))
+    return any(walk(t) for t in parse_formula(text))
+
+
+def _resolve(node: Node, columns: set[str], rate_window_s: float, text: str,
+             channel_probe: str | None = None) -> Node:
     if node["op"] == "atom":
+        target = _placeholder_target(node["name"], channel_probe, columns, text)
+        if target is not None:
+            return resolve_atom(target, columns, rate_window_s)
         try:
             return resolve_atom(node["name"], columns, rate_window_s)
         except KeyError:
@@ -246,7 +286,7 @@ def _resolve(node: Node, columns: set[str], rate_window_s: float, text: str) -> 
                                           f"{node['name']!r}; probes: {', '.join(temps) or 'none'})") from None
     out = dict(node)
     if "args" in node:
-        out["args"] = [_resolve(a, columns, rate_window_s, text) for a in node["args"]]
+        out["args"] = [_resolve(a, columns, rate_window_s, text, channel_probe) for a in node["args"]]
     return out
 
 
@@ -412,15 +452,17 @@ def _clean_tree(node: Node) -> Node:
 
 
 def compile_terms(terms: list[tuple[str, str]], columns: Iterable[str], *, rate_window_s: float = 120.0,
-                  target_unit: str = "deg/h", intercept: str = "intercept", text: str | None = None) -> CompiledFormula:
-    """Compile named terms [(coefficient_name, expression)] (each expression one formula term)."""
+                  target_unit: str = "deg/h", intercept: str = "intercept", text: str | None = None,
+                  channel_probe: str | None = None) -> CompiledFormula:
+    """Compile named terms [(coefficient_name, expression)] (each expression one formula term;
+    ``tc``/``dtc`` resolve to ``channel_probe``)."""
     cols = set(columns)
     names, nodes, units = [intercept], [], {intercept: target_unit}
     for name, expr in terms:
         parsed = parse_formula(expr)
         if len(parsed) != 1:
             raise FormulaError(expr, None, "each named term must be a single term")
-        node = _resolve(parsed[0], cols, rate_window_s, expr)
+        node = _resolve(parsed[0], cols, rate_window_s, expr, channel_probe)
         names.append(name)
         nodes.append(node)
         units[name] = coefficient_unit(target_unit, node_unit(node))
@@ -429,11 +471,21 @@ def compile_terms(terms: list[tuple[str, str]], columns: Iterable[str], *, rate_
 
 
 def compile_formula(text: str, columns: Iterable[str], *, rate_window_s: float = 120.0,
-                    target_unit: str = "deg/h") -> CompiledFormula:
-    """Parse and resolve a user formula; coefficient names are the canonical term texts."""
+                    target_unit: str = "deg/h", channel_probe: str | None = None) -> CompiledFormula:
+    """Parse and resolve a user formula; coefficient names are the canonical term texts as written
+    (``tc^2`` stays the name; its resolved term, e.g. ``t2^2``, is in the recipe).  ``tc``/``dtc``
+    resolve to ``channel_probe``."""
     cols = set(columns)
     parsed = parse_formula(text)
-    nodes = [_resolve(p, cols, rate_window_s, text) for p in parsed]
+    nodes = [_resolve(p, cols, rate_window_s, text, channel_probe) for p in parsed]
+    seen: dict[str, str] = {}
+    for p, node in zip(parsed, nodes):
+        resolved = node_text(node)
+        if resolved in seen:
+            raise FormulaError(text, _atom_position(text, CHANNEL_PROBE), f"terms {seen[resolved]!r} and "
+                               f"{node_text(p)!r} are the same term {resolved!r} on this channel (its probe is "
+                               f"{channel_probe!r})")
+        seen[resolved] = node_text(p)
     names = ["intercept"] + [node_text(p) for p in parsed]
     units = {"intercept": target_unit}
     for name, node in zip(names[1:], nodes):

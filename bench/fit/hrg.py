@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.errors import DataFormatError
 from bench.fit import pso
-from bench.fit.base import Dataset, FitResult
+from bench.fit.base import Dataset, FitResult, channel_probe
 from bench.fit.fog import (
     RATE_METHOD,
     _column,
@@ -261,12 +261,23 @@ def _averaged_pair(dataset: Dataset, x: np.ndarray, y: np.ndarray, average_s: fl
     return cols["x"], cols["y"]
 
 
+def _reference_probe(dataset: Dataset, channel: str, opts: dict[str, Any], *keys: str) -> str | None:
+    """The temperature probe of a channel: the first of the ``keys`` options given, else the channel's
+    own probe when the data's ``channel_probes`` map names it, else None (the only temp_* column)."""
+    for key in keys:
+        if opts.get(key):
+            return opts[key]
+    if channel in (dataset.meta.get("channel_probes") or {}):
+        return channel_probe(dataset, channel)
+    return None
+
+
 def fit_hrg_reverse(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
     """T(freq_<ch>) against the reference probe (``reference``/``probe``: e.g. "t2").
     Option average_s (default 100; 0 = use every sample)."""
     where = f"hrg_reverse freq_{channel}"
     fcol = f"freq_{channel}"
-    tcol = pick_temperature_column(dataset, opts.get("reference") or opts.get("probe"), where)
+    tcol = pick_temperature_column(dataset, _reference_probe(dataset, channel, opts, "reference", "probe"), where)
     f, T = _averaged_pair(dataset, _column(dataset, fcol, where), _column(dataset, tcol, where),
                           float(opts.get("average_s", 100.0)))
     rc = fit_reverse_cubic(f, T)
@@ -302,7 +313,7 @@ def fit_hrg_forward(dataset: Dataset, channel: str, **opts: Any) -> FitResult:
     plus the centred/scaled ones in the definition."""
     where = f"hrg_forward freq_{channel}"
     fcol = f"freq_{channel}"
-    tcol = pick_temperature_column(dataset, opts.get("reference") or opts.get("probe"), where)
+    tcol = pick_temperature_column(dataset, _reference_probe(dataset, channel, opts, "reference", "probe"), where)
     f, T = _averaged_pair(dataset, _column(dataset, fcol, where), _column(dataset, tcol, where),
                           float(opts.get("average_s", 100.0)))
     fc = fit_forward_cubic(T, f)
@@ -339,7 +350,8 @@ def _temperature_source(dataset: Dataset, channel: str, opts: dict[str, Any], wh
         return _reverse_definition(_reverse_from_definition(reverse.definition), reverse.definition["freq_column"])
     source = opts.get("temperature_source", "freq")
     if source == "freq" and f"freq_{channel}" in dataset:
-        rev = fit_hrg_reverse(dataset, channel, reference=opts.get("reference") or opts.get("probe"),
+        reference = _reference_probe(dataset, channel, opts, "reference", "probe")
+        rev = fit_hrg_reverse(dataset, channel, reference=reference,
                               average_s=opts.get("average_s", 100.0))
         out = _reverse_definition(_reverse_from_definition(rev.definition), f"freq_{channel}")
         out["fitted_against"] = rev.target
@@ -347,7 +359,8 @@ def _temperature_source(dataset: Dataset, channel: str, opts: dict[str, Any], wh
     if source not in ("freq", "probe"):
         raise DataFormatError(f"{where}: temperature_source must be 'freq' or 'probe', got {source!r}",
                               column="temperature_source")
-    return {"kind": "probe", "column": pick_temperature_column(dataset, opts.get("probe"), where)}
+    probe = _reference_probe(dataset, channel, opts, "probe")
+    return {"kind": "probe", "column": pick_temperature_column(dataset, probe, where)}
 
 
 def _temperature(dataset: Dataset, source: dict[str, Any], where: str) -> tuple[np.ndarray, np.ndarray]:

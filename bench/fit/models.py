@@ -15,6 +15,12 @@ them exports the same term-list evaluation recipe):
 * ``formula``  an intercept plus user terms (see ``bench.fit.formula``); any string that is not a
   registered model name is parsed as a formula.
 
+The channel's own probe: ``static`` and ``dynamic`` are built on it, ``patent37`` records it (and spans
+its hull with it) when it is one of its four probes, and a formula's ``tc``/``dtc`` stand for it.  It is
+the ``probe=`` option when given, else ``bench.fit.base.channel_probe`` (the data's
+``meta["channel_probes"]``, else the default); ``definition["probe"]`` records it and
+``definition["probe_source"]`` where it came from.
+
 Common options of the linear models (``fit_model(name, ds, channel, **opts)``):
 ``earth_rate`` (None = remove when latitude and the channel's axis are known, True = must remove,
 False = keep), ``latitude_deg``, ``axis`` (body vector of the channel), ``rate_window_s`` (dT/dt
@@ -48,9 +54,9 @@ from scipy.spatial import ConvexHull, QhullError
 
 from bench.errors import DataFormatError
 from bench.fit import prep
-from bench.fit.base import Dataset, FitResult
+from bench.fit.base import Dataset, FitResult, channel_probe
 from bench.fit.formula import (CompiledFormula, compile_formula, compile_terms, compiled_from_recipe,
-                               signal_key)
+                               signal_key, uses_channel_probe)
 from bench.fit.linear import lstsq
 from bench.fit.metrics import bias_stability
 
@@ -204,9 +210,10 @@ def fit_linear_terms(model: str, ds: Dataset, channel: str, *, terms: list[tuple
                                      rate_window_s=rate_window_s, average_s=average_s)
     columns = list(work.columns)
     if formula is not None:
-        compiled = compile_formula(formula, columns, rate_window_s=rate_window_s)
+        compiled = compile_formula(formula, columns, rate_window_s=rate_window_s, channel_probe=probe)
     else:
-        compiled = compile_terms(terms or [], columns, rate_window_s=rate_window_s, intercept=intercept)
+        compiled = compile_terms(terms or [], columns, rate_window_s=rate_window_s, intercept=intercept,
+                                 channel_probe=probe)
     signals = compiled.signals(work)
     x, _ = compiled.design(work, signals=signals)
     keep = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
@@ -288,11 +295,13 @@ def predict_linear(result: FitResult, ds: Dataset, *, mode: str = "clip") -> tup
 
 
 # ------------------------------------------------------------------------------------- the models
-def _default_probe(ds: Dataset, channel: str) -> str:
-    names = ds.temp_names()
-    if not names:
-        raise DataFormatError("no temp_<name> column in data")
-    return channel if channel in names else names[0]
+def _own_probe(ds: Dataset, channel: str, probe: str | None) -> tuple[str, str]:
+    """(probe, where it came from): the ``probe=`` option, else the channel's own probe
+    (``bench.fit.base.channel_probe``: the data's ``channel_probes`` map, else the default)."""
+    if probe:
+        return _check_probe(ds, probe), "probe option"
+    mapped = channel in (ds.meta.get("channel_probes") or {})
+    return channel_probe(ds, channel), "channel_probes metadata" if mapped else "default (no channel_probes entry)"
 
 
 def _check_probe(ds: Dataset, probe: str) -> str:
@@ -311,19 +320,21 @@ def _centred(probe: str, t0: float) -> str:
 
 def fit_static(ds: Dataset, channel: str, *, probe: str | None = None, t0_c: float = 25.0, order: int = 3,
                bin_c: float | None = 0.5, **opts: Any) -> FitResult:
-    """S000 eq 3 (static cubic about t0 = 25 C)."""
-    probe = _check_probe(ds, probe or _default_probe(ds, channel))
+    """S000 eq 3 (static cubic about t0 = 25 C) in the channel's own probe."""
+    probe, source = _own_probe(ds, channel, probe)
     c = _centred(probe, t0_c)
     terms = [(f"A{j}", c if j == 1 else f"{c}^{j}") for j in range(1, order + 1)]
     return fit_linear_terms("static", ds, channel, terms=terms, intercept="A0", probe=probe, bin_c=bin_c,
-                            extra_definition={"equation": "S000 eq 3", "t0_c": float(t0_c), "order": order},
+                            extra_definition={"equation": "S000 eq 3", "t0_c": float(t0_c), "order": order,
+                                              "probe_source": source},
                             **opts)
 
 
 def fit_dynamic(ds: Dataset, channel: str, *, probe: str | None = None, grad: tuple[str, str] | None | str = "auto",
                 t0_c: float | str = 25.0, l: int = 1, m: int = 1, n: int = 1, **opts: Any) -> FitResult:  # noqa: E741
-    """S000 eq 4 (l = m = n = 1) and its polynomial generalisation eq 5."""
-    probe = _check_probe(ds, probe or _default_probe(ds, channel))
+    """S000 eq 4 (l = m = n = 1) and its polynomial generalisation eq 5, in the channel's own probe t_i
+    (gradient ``auto``: that probe minus the first other probe)."""
+    probe, source = _own_probe(ds, channel, probe)
     if grad == "auto":
         others = [p for p in ds.temp_names() if p != probe]
         grad = (probe, others[0]) if others else None
@@ -350,7 +361,7 @@ def fit_dynamic(ds: Dataset, channel: str, *, probe: str | None = None, grad: tu
     terms += [(nm, powered(f"d{probe}", j)) for j, nm in enumerate(names("q", n), start=1)]
     extra = {"equation": "S000 eq 4" if (l, m, n) == (1, 1, 1) else "S000 eq 5", "t0_c": t0,
              "t0_source": "power_on" if t0_c == "power_on" else "fixed", "orders": {"l": l, "m": m, "n": n},
-             "gradient": list(grad) if grad else None}
+             "gradient": list(grad) if grad else None, "probe_source": source}
     return fit_linear_terms("dynamic", ds, channel, terms=terms, intercept="B0", probe=probe,
                             extra_definition=extra, **opts)
 
@@ -369,17 +380,34 @@ def fit_patent37(ds: Dataset, channel: str, *, probes: list[str] | None = None, 
         tr = f"{c}*{r}"
         for expr in (c, f"{c}^2", f"{c}^3", r, f"{r}^2", f"{r}^3", tr, f"({tr})^2", f"({tr})^3"):
             terms.append((f"a{len(terms) + 1}", expr))
-    return fit_linear_terms("patent37", ds, channel, terms=terms, intercept="a0", probe=probes[0],
+    # the terms keep the patent order of ``probes``; the channel's own probe (when among them) is the
+    # recorded probe and spans the (T, dT/dt) validity hull
+    own, source = _own_probe(ds, channel, None)
+    if own not in probes:
+        own, source = probes[0], "first of probes (the channel's own probe is not among them)"
+    return fit_linear_terms("patent37", ds, channel, terms=terms, intercept="a0", probe=own,
                             extra_definition={"equation": "S001 37-term", "t0_c": float(t0_c), "probes": probes,
-                                              "centred": "T -> T - t0"}, **opts)
+                                              "centred": "T -> T - t0", "probe_source": source}, **opts)
 
 
 def fit_formula(ds: Dataset, channel: str, *, formula: str, probe: str | None = None, **opts: Any) -> FitResult:
-    """Intercept plus user terms (``bench.fit.formula`` grammar)."""
-    if probe is None:
-        names = ds.temp_names()
-        probe = channel if channel in names else (names[0] if names else None)
-    return fit_linear_terms("formula", ds, channel, formula=formula, probe=probe, **opts)
+    """Intercept plus user terms (``bench.fit.formula`` grammar).  ``tc``/``dtc`` are the channel's own
+    probe (``probe=`` when given, else the data's ``channel_probes`` map, else the default); the
+    definition records it as ``channel_probe`` and the resolved terms name it."""
+    needs_own = uses_channel_probe(formula)
+    source = None
+    if probe is not None or needs_own:
+        probe, source = _own_probe(ds, channel, probe)
+    elif ds.temp_names():
+        try:          # only spans the validity hull here: a formula without tc need not have it
+            probe, source = _own_probe(ds, channel, None)
+        except DataFormatError:
+            probe = None
+    extra: dict[str, Any] = {"probe_source": source} if source is not None else {}
+    if needs_own:
+        extra["channel_probe"] = probe
+    return fit_linear_terms("formula", ds, channel, formula=formula, probe=probe,
+                            extra_definition={**extra, **opts.pop("extra_definition", {})}, **opts)
 
 
 for _name, _fit, _desc in (

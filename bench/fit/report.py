@@ -21,7 +21,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from bench.fit.base import Dataset, FitResult
+from bench.fit.base import Dataset, FitResult, format_channel_probes
 from bench.signal import (
     DEFAULT_RATE_METHOD,
     allan_deviation,
@@ -280,7 +280,8 @@ def render_fit_report(results: Sequence[FitResult], train: Dataset, validation: 
     body = [f"<h1>{html.escape(title)}</h1>"]
     body.append(html_table(("dataset", "samples", "duration (h)", "meta"),
                            [(lbl, len(d), (float(d.time[-1] - d.time[0]) / 3600.0) if len(d) > 1 else 0.0,
-                             "; ".join(f"{k}={v}" for k, v in d.meta.items()))
+                             "; ".join(f"{k}={format_channel_probes(v) if k == 'channel_probes' else v}"
+                                       for k, v in d.meta.items()))
                             for lbl, d in (("train", train), ("validation", validation)) if d is not None],
                            caption="Data"))
     body.append("<h2>Temperatures</h2>")
@@ -294,6 +295,9 @@ def render_fit_report(results: Sequence[FitResult], train: Dataset, validation: 
         formula = r.definition.get("formula")
         if formula:
             body.append(f"<p><code>{html.escape(str(formula))}</code></p>")
+        if r.definition.get("probe"):
+            body.append(f"<p>probe: {html.escape(str(r.definition['probe']))}"
+                        f" ({html.escape(str(r.definition.get('probe_source') or 'given'))})</p>")
         if r.coefficients:
             body.append(coefficient_table(r))
         body.append(html_table(("statistic", "value"), [(k, v) for k, v in r.stats.items()

@@ -173,7 +173,8 @@ class SimulatedBench:
                                   baudrate=115200, timeout_s=2.0),
             turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry),
             gyro=GyroConfig(url=e["gyro"], frame=e["gyro_frame"], data_rate_hz=self.data_rate_hz,
-                            channels=tuple(self.scenario.channels)),
+                            channels=tuple(self.scenario.channels),
+                            channel_probes=self.scenario.channel_probe_map()),
             probes=ProbeConfig(w1_root=e["w1_root"], probes=dict(self.serials)),
             psu=PsuConfig(url=e["psu"]),
         )

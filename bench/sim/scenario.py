@@ -284,6 +284,9 @@ class Scenario(_Strict):
     thermal: ThermalNetwork
     probes: dict[str, str]                         # probe position name -> node it is glued to
     channel_nodes: dict[str, str]                  # channel -> its own temperature node/probe
+    # channel -> the probe (a ``probes`` name) that reads that channel's own temperature: what the bench
+    # config and each run declare (``gyro.channel_probes``) so that fits use t_i for channel i (S000 eq 4)
+    channel_probes: dict[str, str] | None = None
     sensor_node: str                               # node read by the gyro's internal temperature
     sensing_nodes: dict[str, str] | None = None    # channel -> sensing element node (HRG frequency)
     bias: dict[str, ChannelBias]
@@ -302,6 +305,19 @@ class Scenario(_Strict):
         return v
 
     # -- validation across sections ------------------------------------------------------------
+
+    def channel_probe_map(self) -> dict[str, str]:
+        """Channel -> its own probe: ``channel_probes`` as declared, else, per channel, the one probe
+        glued to the channel's own node (channels without exactly one such probe are left out)."""
+        if self.channel_probes is not None:
+            return dict(self.channel_probes)
+        out = {}
+        for ch in self.channels:
+            node = self.node_of(self.channel_nodes[ch])
+            on_node = [p for p, n in self.probes.items() if n == node]
+            if len(on_node) == 1:
+                out[ch] = on_node[0]
+        return out
 
     def temperature_names(self) -> set[str]:
         return set(self.thermal.nodes) | set(self.probes)
@@ -335,6 +351,12 @@ class Scenario(_Strict):
                 raise ValueError(f"channel_nodes: channel {ch!r} missing")
             need_name(f"channel_nodes.{ch}", self.channel_nodes[ch])
         need_name("sensor_node", self.sensor_node)
+        if self.channel_probes is not None:
+            need_channels("channel_probes", self.channel_probes)
+            for ch, probe in self.channel_probes.items():
+                if probe not in self.probes:
+                    raise ValueError(f"channel_probes.{ch}: {probe!r} is not a probe (probes: "
+                                     f"{', '.join(sorted(self.probes)) or 'none'})")
         need_channels("bias", self.bias)
         for ch, spec in self.bias.items():
             for term in spec.terms:
@@ -454,6 +476,7 @@ class Scenario(_Strict):
                 "t0_c": b.t0_c,
                 "terms": dict(b.terms),
                 "temperature": self.channel_nodes[ch],
+                "probe": self.channel_probe_map().get(ch),
                 "noise": self.noise.get(ch, ChannelNoise()).model_dump(),
             }
         effects = {k: v for k, v in self.effects.model_dump().items() if v is not None}

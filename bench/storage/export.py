@@ -227,7 +227,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
     gyro's own sensor as ``temp_gyro`` only when no probe was read), ``freq_<ch>`` (HRG),
     ``orientation`` (segment label, empty = unknown), ``power`` (PSU output 1/0), ``chamber_pv``,
     ``chamber_sp``.  Metadata: run_id, procedure, gyro_id, gyro_type, sample_period_s = 1,
-    bench_time0_s (bench time of ``time_s`` 0) and ``latitude_deg`` (argument, else the run's config
+    bench_time0_s (bench time of ``time_s`` 0), ``channel_probes`` (dict channel -> its own probe, from the
+    config snapshot's ``gyro.channel_probes``, when the bench declared it) and ``latitude_deg`` (argument, else the run's config
     snapshot) only when every row has an orientation, so the Earth rate is removed only where it can
     be.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
     ``max_age_s`` (previous-sample hold of probes/telemetry) defaults to the run's recorded engine
@@ -252,6 +253,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
         gyro_cfg = snapshot.get("gyro") or {}
         if gyro_cfg.get("frame"):
             meta["gyro_type"] = str(gyro_cfg["frame"])
+        if gyro_cfg.get("channel_probes"):
+            meta["channel_probes"] = {str(ch): str(p) for ch, p in gyro_cfg["channel_probes"].items()}
         if max_age_s is None:
             ecfg = live.get("engine_config") or {}
             periods = [float(ecfg.get(k, 0.0) or 0.0) for k in ("telemetry_period_s", "probe_period_s", "max_tick_s")]
