@@ -35,10 +35,12 @@ import numpy as np
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
-                                        gates, search)
+                                        evidence_blocks, gates, search)
+from bench.fit.metrics import bias_stability
 from bench.fit.noisefloor import fit_noise_model
-from bench.fit.signalops import block_means, hac_wald_p, lstsq, rms, sample_period, std100
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors
+from bench.signal import block_means
+from bench.signal import lstsq as signal_lstsq
 
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
 
@@ -46,6 +48,25 @@ AT_FLOOR_RATIO = 1.2
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
 TEST_P = 0.01
+
+
+def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Coefficients of ``bench.signal.lstsq`` (rows with a missing value left out)."""
+    return signal_lstsq(X, y).coef
+
+
+def std100(residual: np.ndarray, time_s: np.ndarray) -> float:
+    """Bias stability: std of 100-s means (GJB 2426A convention), the fitting module's definition."""
+    return bias_stability(time_s, residual, 100.0)
+
+
+def rms(x: np.ndarray) -> float:
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+
+def sample_period(time_s: np.ndarray) -> float:
+    return float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
 
 
 @dataclass
@@ -56,7 +77,7 @@ class Design:
     validate_deployed: np.ndarray | None = None   # inputs clipped to the training ranges
     in_range: np.ndarray | None = None            # validation samples with every input in range
     outside: dict[str, Any] = field(default_factory=dict)
-    train_signals_b: np.ndarray | None = None     # 100-s means of the declared inputs on TRAIN
+    train_signals: np.ndarray | None = None       # the declared inputs on TRAIN (n_train, s)
 
 
 # --------------------------------------------------------------------------------------------
@@ -136,13 +157,16 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # TRAIN: choose the effects (search on block means)
     inputs_tr, inputs_va = fx.build_inputs(train, ctx), fx.build_inputs(validate, ctx)
     fine = inputs_tr.averaged(FINE_S)
-    per = max(1, int(round(BLOCK_S / fine.dt)))
-    fine_block = fine.dt * per
-    yb = block_means(y_train, t_tr, fine_block)
-    Xb = block_means(design.train, t_tr, fine_block)
-    nb = min(len(yb), len(fx.block_mean_rows(fine.time, per)))
-    sig_b = design.train_signals_b if design.train_signals_b is not None else np.zeros((len(yb), 0))
-    problem = SearchProblem(yb=yb[:nb], Xb=Xb[:nb], fine=fine, per=per, declared_signals_b=sig_b[:nb],
+    cols = {"y": y_train}
+    cols.update({f"x{j}": design.train[:, j] for j in range(design.train.shape[1])})
+    sig = design.train_signals if design.train_signals is not None else np.zeros((len(train), 0))
+    cols.update({f"s{j}": sig[:, j] for j in range(sig.shape[1])})
+    on_fine = block_means(t_tr, cols, FINE_S).columns if sample_period(t_tr) < 0.9 * FINE_S else cols
+    ev = evidence_blocks(fine.time, on_fine)
+    k, ns = design.train.shape[1], sig.shape[1]
+    problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[f"x{j}"] for j in range(k)]), fine=fine,
+                            declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
+                            else np.zeros((len(ev["y"]), 0)),
                             families=fx.families(ctx, inputs_tr))
     chosen, steps = search(problem)
 
@@ -194,7 +218,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # noise floor from the final residuals at short taus
     va_in = np.where(in_range, r_va, np.nan)
     model = fit_noise_model([(r_tr, sample_period(t_tr)), (va_in, sample_period(t_va))])
-    n_in_blocks = np.sum(np.isfinite(block_means(va_in, t_va, BLOCK_S)))
+    n_in_blocks = int(np.sum(np.isfinite(block_means(t_va, {"r": va_in}, BLOCK_S).columns["r"])))
     floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S)
     floor_tr = model.floor(t_tr[-1] - t_tr[0])
     floor = floor_val["noise_floor_dph"]
@@ -398,20 +422,10 @@ def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str
     usable = np.isfinite(y_va) & np.all(np.isfinite(x_va), axis=1)
     keys = [k for k in ranges if k in s_tr]
     sig_tr = np.column_stack([s_tr[k] for k in keys]) if keys else np.zeros((len(train), 0))
-    fine_block = BLOCK_S
     design = Design(list(compiled.names), x_tr, x_va, validate_deployed=x_dep, in_range=in_range,
-                    outside=outside_summary(s_va, ranges, usable),
-                    train_signals_b=_signals_on_blocks(sig_tr, train.time, fine_block))
+                    outside=outside_summary(s_va, ranges, usable), train_signals=sig_tr)
     probe = d.get("probe") or _first_probe(compiled, train)
     return declared, design, y_tr, y_va, probe, window
-
-
-def _signals_on_blocks(sig: np.ndarray, time_s: np.ndarray, block_s: float) -> np.ndarray:
-    fine = max(1, int(round(FINE_S / sample_period(time_s))))
-    t_fine = fx.block_mean_rows(time_s, fine)
-    s_fine = fx.block_mean_rows(sig, fine) if sig.shape[1] else np.zeros((len(t_fine), 0))
-    per = max(1, int(round(block_s / sample_period(t_fine))))
-    return fx.block_mean_rows(s_fine, per) if sig.shape[1] else np.zeros((len(t_fine) // per, 0))
 
 
 def _first_probe(compiled, ds: Dataset) -> str:

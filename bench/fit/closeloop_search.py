@@ -32,7 +32,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from bench.fit import effects as fx
-from bench.fit.signalops import hac_wald_p, lag1
+from bench.signal import block_means, hac_wald_test, lag1_autocorrelation
 
 FINE_S = 10.0
 BLOCK_S = 100.0
@@ -68,8 +68,7 @@ class SearchProblem:
 
     yb: np.ndarray                 # (n_blocks,) 100-s means of the target
     Xb: np.ndarray                 # (n_blocks, k) 100-s means of the declared design
-    fine: fx.Inputs                # inputs on the fine grid
-    per: int                       # fine samples per evidence block
+    fine: fx.Inputs                # inputs on the fine grid (10-s means)
     declared_signals_b: np.ndarray  # (n_blocks, s) 100-s means of the declared model's inputs
     families: list[fx.Family]
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
@@ -82,14 +81,12 @@ class SearchProblem:
 
     # ---------------------------------------------------------------- columns
     def columns(self, eff: fx.Effect) -> np.ndarray:
+        """The effect's columns built on the fine grid, as 100-s evidence-block means."""
         key = eff.label
         got = self._cache.get(key)
         if got is None:
             cols = eff.columns(self.fine)
-            z = np.column_stack([np.asarray(v, dtype=np.float64) for v in cols.values()])
-            got = fx.block_mean_rows(z, self.per)[: len(self.yb)]
-            if len(got) < len(self.yb):
-                got = np.vstack([got, np.full((len(self.yb) - len(got), got.shape[1]), np.nan)])
+            got = np.column_stack(list(evidence_blocks(self.fine.time, cols).values()))
             self._cache[key] = got
         return got
 
@@ -126,7 +123,7 @@ class SearchProblem:
         resid[ok] = self.yb[ok] - X[ok] @ beta
         r = resid[ok]
         cv = self.cv(X) if with_cv else float("nan")
-        return Scored(effects, float(r @ r), _rank(X[ok]), int(ok.sum()), lag1(resid), cv, resid)
+        return Scored(effects, float(r @ r), _rank(X[ok]), int(ok.sum()), lag1_autocorrelation(resid), cv, resid)
 
     def folds(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Contiguous segments of the training blocks; each is scored where the declared inputs lie
@@ -262,7 +259,23 @@ class _Projector:
         return float(r @ r)
 
 
+def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """100-s evidence blocks of fine-grid columns (``bench.signal.block_means``); the same fine time
+    axis always gives the same blocks, so target, design and effect columns line up."""
+    return block_means(fine_time, {k: np.asarray(v, dtype=np.float64) for k, v in cols.items()}, BLOCK_S).columns
+
+
+def hac_wald_p(X: np.ndarray, y: np.ndarray, columns: list[int]) -> float:
+    """p-value of ``bench.signal.hac_wald_test`` (1 when the robust covariance is singular)."""
+    try:
+        return hac_wald_test(X, y, columns).p_value
+    except (np.linalg.LinAlgError, ValueError):
+        return 1.0
+
+
 def _lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The search's small dense solve (hundreds of rows, called thousands of times: no per-call
+    thread-pool set-up); full-rate fits use ``bench.signal.lstsq``."""
     scale = np.sqrt(np.mean(X ** 2, axis=0)) if len(X) else np.ones(X.shape[1])
     scale[~(scale > 0)] = 1.0
     beta, *_ = np.linalg.lstsq(X / scale, y, rcond=None)

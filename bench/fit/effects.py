@@ -30,7 +30,6 @@ run or its block means (the search runs on block means: the regressors are smoot
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Callable
@@ -40,6 +39,7 @@ from scipy.signal import lfilter
 
 from bench.fit import prep
 from bench.fit.base import Dataset
+from bench.signal import block_means, orientation_axes_per_sample, temperature_rate
 
 T0_C = 25.0
 LAG_TAUS_S = (30.0, 60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0)
@@ -81,23 +81,23 @@ class Inputs:
         return len(self.time)
 
     def averaged(self, block_s: float) -> "Inputs":
-        """Block means over ``block_s`` seconds (or the inputs themselves when already that coarse)."""
-        per = max(1, int(round(block_s / self.dt)))
-        if per == 1:
+        """Block means over ``block_s`` seconds (``bench.signal.block_means``)."""
+        if self.dt >= 0.9 * block_s:
             return self
-        avg = lambda x: block_mean_rows(x, per)  # noqa: E731
-        return Inputs(time=avg(self.time), temps={k: avg(v) for k, v in self.temps.items()},
-                      rates={k: avg(v) for k, v in self.rates.items()}, since_on=avg(self.since_on),
-                      power_known=self.power_known, up=None if self.up is None else avg(self.up),
-                      input_rate=None if self.input_rate is None else avg(self.input_rate))
-
-
-def block_mean_rows(x: np.ndarray, per: int) -> np.ndarray:
-    n = (len(x) // per) * per
-    shaped = x[:n].reshape((n // per, per) + x.shape[1:])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)      # an all-missing block is NaN, on purpose
-        return np.nanmean(shaped, axis=1)
+        cols = {f"T:{k}": v for k, v in self.temps.items()}
+        cols.update({f"R:{k}": v for k, v in self.rates.items()})
+        cols["since_on"] = self.since_on
+        if self.up is not None:
+            cols.update({f"up{i}": self.up[:, i] for i in range(3)})
+        if self.input_rate is not None:
+            cols["w_in"] = self.input_rate
+        bm = block_means(self.time, cols, block_s)
+        c = bm.columns
+        return Inputs(time=bm.time_s, temps={k: c[f"T:{k}"] for k in self.temps},
+                      rates={k: c[f"R:{k}"] for k in self.rates}, since_on=c["since_on"],
+                      power_known=self.power_known,
+                      up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
+                      input_rate=c.get("w_in"))
 
 
 @dataclass(frozen=True)
@@ -192,9 +192,9 @@ def _hold_missing(x: np.ndarray) -> np.ndarray:
 
 
 def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0) -> np.ndarray:
-    """dT/dt in C/min, the fitting module's one definition (``prep.rate_c_per_min``); NaN -> 0 at the
-    edges so a regressor column stays usable."""
-    return np.nan_to_num(prep.rate_c_per_min(time_s, temp, window_s), nan=0.0)
+    """dT/dt in C/min (``bench.signal.temperature_rate``, centred slope, as the declared models' rate
+    terms); NaN -> 0 at the edges so a regressor column stays usable."""
+    return np.nan_to_num(temperature_rate(time_s, temp, window_s, method="centred_slope"), nan=0.0)
 
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
@@ -239,11 +239,7 @@ def time_since_power_on(ds: Dataset) -> np.ndarray:
 
 def body_axes_enu(orientation: np.ndarray) -> np.ndarray:
     """Array (n, 3, 3): [k, i, :] = direction of body axis i (x, y, z) in East-North-Up."""
-    codes = np.asarray(orientation, dtype=object)
-    codes = np.where(codes == "", prep.ORIENTATION_DEFAULT, codes)
-    uniq, inverse = np.unique(codes, return_inverse=True)
-    table = np.array([prep.orientation_axes(str(code)) for code in uniq])
-    return table[inverse]
+    return orientation_axes_per_sample(np.asarray(orientation, dtype=object))
 
 
 def build_inputs(ds: Dataset, ctx: Context) -> Inputs:

@@ -6,7 +6,8 @@ noise, not by slow thermal structure.  It is fitted (non-negative least squares 
 up to ``tau_max``, relative weights by the number of terms) with the IEEE 952 power laws
 
     sigma^2(tau) = q tau^-2  (quantisation / white phase)  +  w tau^-1 (white rate, ARW)
-                 + f tau^0   (flicker, bias instability)    +  d tau^2  (slow structure / drift)
+                 + f tau^0   (flicker, bias instability)    +  k tau^1  (rate random walk)
+                 + d tau^2   (slow structure / drift)
 
 The last term only absorbs slow structure (a trend or a slow unexplained wave grows as tau^2 at
 short tau) and is NOT part of the floor.  The expected sample variance of M consecutive tau-means of
@@ -33,8 +34,8 @@ from scipy.optimize import nnls
 from scipy.stats import chi2
 
 BLOCK_S = 100.0
-MUS = (-2.0, -1.0, 0.0, 2.0)          # Allan-variance exponents fitted; the last one is structure
-NOISE_MUS = (-2.0, -1.0, 0.0)
+MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted; the last one is structure
+NOISE_MUS = (-2.0, -1.0, 0.0, 1.0)
 INTERVAL = 0.90
 
 
@@ -80,15 +81,19 @@ class NoiseModel:
         return {"white_dph_at_1s": float(np.sqrt(max(h.get(-1.0, 0.0), 0.0))),
                 "flicker_adev_dph": float(np.sqrt(max(h.get(0.0, 0.0), 0.0))),
                 "quantisation_dph_s": float(np.sqrt(max(h.get(-2.0, 0.0), 0.0))),
+                "rate_random_walk_dph_per_rt_s": float(np.sqrt(max(h.get(1.0, 0.0), 0.0))),
                 "structure_term_dph_per_s": float(np.sqrt(max(h.get(2.0, 0.0), 0.0))),
                 "tau_max_s": float(self.tau_max_s)}
 
 
 def _oadev_octave(x: np.ndarray, dt: float, tau_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Overlapping Allan variance of a rate series at octave multiples of dt up to tau_max."""
-    from bench.fit.signalops import allan_variance
+    """Overlapping Allan variance (``bench.signal.allan_deviation``) at octave multiples of dt up to
+    tau_max: (taus, variances, number of terms)."""
+    from bench.signal import allan_deviation
 
-    return allan_variance(x, dt, tau_max)
+    taus = dt * 2.0 ** np.arange(0, int(np.floor(np.log2(max(tau_max / dt, 1.0)))) + 1)
+    res = allan_deviation(x, 1.0 / dt, taus=taus)
+    return res.taus_s, res.adev ** 2, res.n
 
 
 def fit_noise_model(residuals: list[tuple[np.ndarray, float]], tau_max_s: float = 400.0) -> NoiseModel:
