@@ -45,6 +45,7 @@ from bench.signal import lstsq as signal_lstsq
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
 
 AT_FLOOR_RATIO = 1.2
+STOP_RATIO = 1.15
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
 TEST_P = 0.01
@@ -168,7 +169,12 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                             declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
                             else np.zeros((len(ev["y"]), 0)),
                             families=fx.families(ctx, inputs_tr))
-    chosen, steps = search(problem)
+    # the training record's noise floor, from the declared model's residual at short taus: the
+    # search stops once the training residual is within STOP_RATIO of it
+    r_declared = y_train - design.train @ lstsq(design.train, y_train)
+    floor_start = fit_noise_model([(r_declared, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0])
+    stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
+    chosen, steps = search(problem, stop_std100=stop)
 
     # full-rate columns of the chosen effects, fitted on TRAIN
     def stack(effs, X, inputs):
@@ -277,6 +283,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             "verdict": judged_on,
         },
         "search_steps": steps,
+        "search_stop_std100_dph": stop,
     }
     report["findings"] = _findings(report)
     report["_residuals"] = {"before": (r_tr0, r_va0), "after": (r_tr, r_va)}
@@ -288,7 +295,7 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va, be
     in-range validation std100 after adding the effects up to it (in the order chosen)."""
     out = []
     full = problem.score(kept, with_cv=True)
-    step_ev = {lab: s["evidence"] for s in steps for lab in s["after_joint_refit"]}
+    step_ev = {lab: s["evidence"] for s in steps if "evidence" in s for lab in s["after_joint_refit"]}
     beta = fit(kept)[0]
     offset = problem.Xb.shape[1]
     for i, e in enumerate(kept):
@@ -299,7 +306,7 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va, be
         first = step_ev.get(e.label, {})
         if first.get("runner_up") is not None:
             ev["runner_up"] = first["runner_up"]
-            ev["dbic_margin_to_runner_up"] = first.get("dbic_margin_to_runner_up")
+            ev["bic_margin_to_runner_up"] = first.get("bic_margin_to_runner_up")
         cols = list(e.columns(problem.fine).keys())
         start = offset + sum(len(k.columns(problem.fine)) for k in kept[:i])
         val_upto = std100(np.where(in_range, fit(kept[: i + 1])[2], np.nan), t_va)
@@ -345,7 +352,7 @@ def _findings(r: dict[str, Any]) -> str:
                      f"cross-validated error -{100 * ev['cv_gain']:.0f} %; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
         runner = ev.get("runner_up")
-        if runner and ev.get("dbic_margin_to_runner_up") is not None and ev["dbic_margin_to_runner_up"] < 10.0:
+        if runner and ev.get("bic_margin_to_runner_up") is not None and ev["bic_margin_to_runner_up"] < 6.0:
             lines.append(f"   {runner['kind']} ({', '.join(f'{k}={v}' for k, v in runner['params'].items())}) "
                          "explains this residual almost as well: this data cannot tell the two apart; a run "
                          "with a different ramp pattern would.")
@@ -450,11 +457,23 @@ def check_lengths(train: Dataset, validate: Dataset) -> None:
                              f"{span:.0f} s ({len(t)} samples)")
 
 
+def _probe_map_as_dict(ds: Dataset) -> Dataset:
+    """``meta["channel_probes"]`` as the dict the fitting module reads (data built in memory may carry
+    the CSV text form "x=t1,y=t2")."""
+    value = ds.meta.get("channel_probes")
+    if isinstance(value, str):
+        from bench.fit.base import parse_channel_probes
+
+        return Dataset(ds.columns, {**ds.meta, "channel_probes": parse_channel_probes(value)})
+    return ds
+
+
 def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[str] | None = None,
                latitude_deg: float | None = None, **fit_opts: Any) -> dict[str, Any]:
     """Run the close-loop analysis for each channel; returns the JSON-ready report (residual arrays
     for plotting are kept under the private key ``_residuals`` of each channel)."""
     check_lengths(train, validate)
+    train, validate = _probe_map_as_dict(train), _probe_map_as_dict(validate)
     channels = channels or train.gyro_channels()
     if latitude_deg is None and "latitude_deg" in train.meta:
         latitude_deg = float(train.meta["latitude_deg"])

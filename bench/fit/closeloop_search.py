@@ -19,8 +19,8 @@ refined (bounded golden section on log scale) by the training sum of squares; fa
 the three gates (delta-BIC > 10, HAC p < 1e-3, cross-validated error lower by >= 2 %) are ranked by
 delta-BIC (which charges every column and every searched parameter) and the best is added.  Then the nonlinear parameters of ALL added effects are
 re-fitted jointly (coordinate sweeps; probe, pair and form re-chosen within each kind).  When no
-single addition passes, pairs of the strongest families are tried together.  Stop when nothing
-passes or after ``MAX_EFFECTS``.
+single addition passes or when a pair does clearly better than the best single (BIC), pairs of the
+strongest families are added together.  Stop when nothing passes or after ``MAX_EFFECTS``.
 """
 from __future__ import annotations
 
@@ -42,6 +42,8 @@ MIN_CV_GAIN = 0.02
 MAX_EFFECTS = 4
 CV_FOLDS = 8
 PAIR_POOL = 6
+PAIR_DBIC = 6.0
+SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 SWAP_DBIC = 2.0
 
@@ -171,7 +173,7 @@ class SearchProblem:
         costs = [self.ssr(others + (family.at(v),)) for v in grid]
         i = int(np.argmin(costs))
         lo = np.log(grid[max(i - 1, 0)])
-        hi = np.log(grid[min(i + 1, len(grid) - 1)] if i < len(grid) - 1 else grid[-1] * 2.0)
+        hi = np.log(grid[min(i + 1, len(grid) - 1)])
         res = minimize_scalar(lambda lv: self.ssr(others + (family.at(float(np.exp(lv))),)),
                               bounds=(lo, hi), method="bounded", options={"xatol": 0.03})
         if np.isfinite(res.fun) and res.fun < costs[i]:
@@ -179,6 +181,10 @@ class SearchProblem:
         return family.at(grid[i]), float(costs[i])
 
     def refit_jointly(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+        """Joint re-fit of every added effect's nonlinear parameters, then swaps."""
+        return self.swap(self.refit_params(effects))
+
+    def refit_params(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
         """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
         kind with the others held."""
         current = tuple(effects)
@@ -198,7 +204,7 @@ class SearchProblem:
                         best_ssr, eff, changed = s, cand, True
             if not changed:
                 break
-        return self.swap(current)
+        return current
 
     def bic(self, effects: tuple[fx.Effect, ...], n_eff: float) -> float:
         k = sum(self.columns(e).shape[1] + e.family.n_nonlinear for e in effects)
@@ -267,8 +273,12 @@ def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[
 
 def hac_wald_p(X: np.ndarray, y: np.ndarray, columns: list[int]) -> float:
     """p-value of ``bench.signal.hac_wald_test`` (1 when the robust covariance is singular)."""
+    import warnings
+
     try:
-        return hac_wald_test(X, y, columns).p_value
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")       # rank-deficient candidates: judged by the p-value
+            return hac_wald_test(X, y, columns).p_value
     except (np.linalg.LinAlgError, ValueError):
         return 1.0
 
@@ -307,13 +317,24 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
             "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
 
 
-def search(problem: SearchProblem, log: list[dict[str, Any]] | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
-    """Forward selection with joint re-fits and pair moves.  Returns the chosen effects and the
-    evidence of each step (what was added, its gates, the runner-up)."""
+def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
+    """Forward selection with pair look-ahead, joint re-fits and swaps.  Returns the chosen effects
+    and the evidence of each step (what was added, its gates, the runner-up).
+
+    Candidates are ranked by the BIC of the model they give, all with one effective n (that of the
+    whitest candidate model of the step), so that a candidate does not win by whitening its own
+    residual; each must pass the gates with its own effective n.  Pairs of the strongest families are
+    fitted jointly at every step; a pair is taken instead of the best single when its BIC is lower by
+    more than ``PAIR_DBIC`` (two effects at once that no single one explains well)."""
     chosen: tuple[fx.Effect, ...] = ()
     steps: list[dict[str, Any]] = []
     while len(chosen) < MAX_EFFECTS:
         base = problem.score(chosen)
+        left = float(np.nanstd(base.resid, ddof=1))
+        if stop_std100 is not None and left <= stop_std100:
+            steps.append({"stopped": f"training residual std100 {left:.4g} is at the noise floor "
+                                     f"(<= {stop_std100:.4g})"})
+            break
         used = {e.family for e in chosen}
         singles = []
         for fam in problem.families:
@@ -324,40 +345,47 @@ def search(problem: SearchProblem, log: list[dict[str, Any]] | None = None) -> t
                 singles.append((s, eff))
         singles.sort(key=lambda t: t[0])
         ranked = []
-        for s, eff in singles:
+        for s, eff in singles[:SCORED_SINGLES]:
             new = problem.score(chosen + (eff,))
-            ranked.append((eff, new, gates(problem, base, new, (eff,))))
-        passing = [r for r in ranked if r[2]["passed"]]
-        move: tuple[fx.Effect, ...] | None = None
-        if passing:
-            passing.sort(key=lambda r: -r[2]["delta_bic"])
-            eff, new, ev = passing[0]
-            move = (eff,)
-            runner = passing[1] if len(passing) > 1 else None
-            ev["runner_up"] = _describe(runner[0], runner[2]) if runner else None
-            ev["dbic_margin_to_runner_up"] = float(ev["delta_bic"] - runner[2]["delta_bic"]) if runner else None
-        elif len(chosen) + 2 <= MAX_EFFECTS:
-            pool = [eff for _, eff in singles[:PAIR_POOL]]
-            best = None
+            ranked.append(((eff,), new, gates(problem, base, new, (eff,))))
+        pairs = []
+        if len(chosen) + 2 <= MAX_EFFECTS:
+            pool, kinds = [], set()
+            for _, eff in singles:              # the strongest family of each kind
+                if eff.kind not in kinds and len(pool) < PAIR_POOL:
+                    pool.append(eff)
+                    kinds.add(eff.kind)
             for a, b in combinations(pool, 2):
                 if a.family == b.family:
                     continue
-                pair = problem.refit_jointly(chosen + (a, b))[len(chosen):]
+                pair = problem.refit_params(chosen + (a, b))[len(chosen):]
                 new = problem.score(chosen + pair)
                 ev = gates(problem, base, new, pair)
                 if ev["passed"]:
                     each = [hac_wald_p(*_xy(problem, chosen + pair), _cols_of(problem, chosen + pair, j))
                             for j in range(len(chosen), len(chosen) + 2)]
-                    if max(each) < 0.01 and (best is None or ev["delta_bic"] > best[2]["delta_bic"]):
-                        ev["each_hac_wald_p"] = each
-                        best = (pair, new, ev)
-            if best is not None:
-                move, _, ev = best
-                ev["pair"] = True
-        if move is None:
+                    ev["each_hac_wald_p"] = each
+                    ev["passed"] = max(each) < 0.01
+                pairs.append((pair, new, ev))
+        everything = ranked + pairs
+        if not everything:
             break
+        n_ref = max(r[1].n_eff for r in everything)
+        bic = {id(r): problem.bic(chosen + r[0], n_ref) for r in everything}
+        passing = sorted((r for r in ranked if r[2]["passed"]), key=lambda r: bic[id(r)])
+        passing_pairs = sorted((r for r in pairs if r[2]["passed"]), key=lambda r: bic[id(r)])
+        pick = passing[0] if passing else None
+        if passing_pairs and (pick is None or bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC):
+            pick = passing_pairs[0]
+        if pick is None:
+            break
+        move, new, ev = pick
+        ev["pair"] = len(move) == 2
+        runner = next((r for r in passing if r is not pick and r[0][0].family != move[0].family), None)
+        ev["runner_up"] = _describe(runner[0][0], runner[2]) if runner else None
+        ev["bic_margin_to_runner_up"] = float(bic[id(runner)] - bic[id(pick)]) if runner else None
         chosen = problem.refit_jointly(chosen + move)
-        steps.append({"added": [e.label for e in move], "evidence": ev,
+        steps.append({"added": [e.label for e in move], "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
     return chosen, steps
 

@@ -11,7 +11,7 @@ and the signature each one explains (calibration-notes section 3), each on EVERY
                                 powers of its probe stay in the design, so their span holds
                                 f(lag T) - f(T))
 ``gradient(a-b)``               a temperature difference between two probes
-``rate(probe)``                 dT/dt of a probe (C/min)
+``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
 ``rate_squared(probe)``         (dT/dt)^2
 ``temp_rate_cross(probe)``      (T - 25) dT/dt
 ``hysteresis(probe, relay)``    heating vs cooling: a relay state +1 after heating faster than a
@@ -42,8 +42,9 @@ from bench.fit.base import Dataset
 from bench.signal import block_means, orientation_axes_per_sample, temperature_rate
 
 T0_C = 25.0
-LAG_TAUS_S = (30.0, 60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0)
+LAG_TAUS_S = (30.0, 60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
+RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
 GRADUAL_WIDTHS_C = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)           # C
 
@@ -76,6 +77,15 @@ class Inputs:
     @property
     def dt(self) -> float:
         return sample_period(self.time)
+
+    def rate(self, probe: str, window_s: float) -> np.ndarray:
+        """dT/dt (C/min) of a probe through a filter of ``window_s`` (cached per window)."""
+        key = (probe, round(float(window_s), 3))
+        cache = self.__dict__.setdefault("_rate_cache", {})
+        got = cache.get(key)
+        if got is None:
+            got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+        return got
 
     def __len__(self) -> int:
         return len(self.time)
@@ -282,20 +292,28 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                           lambda x, _v, a=a, b=b: {f"({a}-{b})": x.temps[a] - x.temps[b]}))
 
     for p in probes:
-        out.append(Family("rate", (("probe", p),), lambda x, _v, p=p: {f"d{p}": x.rates[p]}))
-        out.append(Family("rate_squared", (("probe", p),), lambda x, _v, p=p: {f"d{p}^2": x.rates[p] ** 2}))
+        out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
+                          "window_s", RATE_WINDOWS_S))
+        out.append(Family("rate_squared", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.rate(p, w) ** 2},
+                          "window_s", RATE_WINDOWS_S))
         out.append(Family("temp_rate_cross", (("probe", p),),
-                          lambda x, _v, p=p: {f"({p}-25)*d{p}": (x.temps[p] - T0_C) * x.rates[p]}))
+                          lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": (x.temps[p] - T0_C) * x.rate(p, w)},
+                          "window_s", RATE_WINDOWS_S))
         out.append(Family("hysteresis", (("probe", p), ("form", "relay")),
                           lambda x, thr, p=p: {f"relay{thr:.3g}(d{p})": relay_state(x.rates[p], thr)},
                           "threshold_c_per_min", RELAY_THRESHOLDS))
-        out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
-                          lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
-                          "width_c", GRADUAL_WIDTHS_C))
+        widths = _widths_for(inputs.temps[p])
+        if widths:
+            out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
+                              lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
+                              "width_c", widths))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
-    out.append(Family("warmup", (), warm, "tau_s", WARMUP_TAUS_S))
+    duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
+    warm_taus = tuple(t for t in WARMUP_TAUS_S if t <= duration / 3.0)
+    if len(warm_taus) >= 2:
+        out.append(Family("warmup", (), warm, "tau_s", warm_taus))
 
     if inputs.up is not None:
         out.append(Family("g_sensitivity", (), lambda x, _v: {f"g_{ax}": x.up[:, i] for i, ax in enumerate("xyz")}))
@@ -313,6 +331,14 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
 
     out.append(Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0}))
     return out
+
+
+def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
+    """Gradual-hysteresis widths that saturate within the run's excursions: up to a quarter of the
+    probe's temperature span (a wider memory never saturates and is only a slow drift)."""
+    t = temp[np.isfinite(temp)]
+    span = float(np.ptp(t)) if len(t) else 0.0
+    return tuple(w for w in GRADUAL_WIDTHS_C if w <= span / 4.0)
 
 
 def _other_channel_temperatures(ctx: Context, probes: list[str]) -> list[str]:

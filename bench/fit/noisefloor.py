@@ -9,8 +9,10 @@ up to ``tau_max``, relative weights by the number of terms) with the IEEE 952 po
                  + f tau^0   (flicker, bias instability)    +  k tau^1  (rate random walk)
                  + d tau^2   (slow structure / drift)
 
-The last term only absorbs slow structure (a trend or a slow unexplained wave grows as tau^2 at
-short tau) and is NOT part of the floor.  The expected sample variance of M consecutive tau-means of
+The last two terms are nuisance terms, NOT part of the floor: at the short taus used, slow structure
+left in the residual (a trend or a slow wave grows as tau^2 there, a wander as tau^1) would otherwise
+be read as noise; a genuine rate random walk is invisible at those taus anyway (IEEE 952 levels of
+navigation and tactical gyros put it orders of magnitude below white and flicker noise at 100 s).  The expected sample variance of M consecutive tau-means of
 a power-law noise sigma^2 ~ tau^mu is its Allan variance times Barnes' bias function
 
     B1(M, mu) = M (1 - M^mu) / (2 (M - 1) (1 - 2^mu))     (mu != 0),   M ln M / (2 (M - 1) ln 2)  (mu = 0)
@@ -34,8 +36,8 @@ from scipy.optimize import nnls
 from scipy.stats import chi2
 
 BLOCK_S = 100.0
-MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted; the last one is structure
-NOISE_MUS = (-2.0, -1.0, 0.0, 1.0)
+MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted
+NOISE_MUS = (-2.0, -1.0, 0.0)          # those that make the floor (tau^1 and tau^2: nuisance terms)
 INTERVAL = 0.90
 
 
