@@ -37,8 +37,8 @@ from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability
-from bench.fit.noisefloor import fit_noise_model
-from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors
+from bench.fit.noisefloor import WHITE_MUS, fit_noise_model
+from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means
 from bench.signal import lstsq as signal_lstsq
 
@@ -46,6 +46,7 @@ __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDA
 
 AT_FLOOR_RATIO = 1.2
 STOP_RATIO = 1.15
+MIN_DIAGNOSIS_BLOCKS = 12
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
 TEST_P = 0.01
@@ -153,6 +154,16 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                        validate: Dataset, ctx: fx.Context, declared_name: str) -> dict[str, Any]:
     t_tr, t_va = train.time, validate.time
     in_range = design.in_range if design.in_range is not None else np.ones(len(validate), dtype=bool)
+    in_blocks = whole_blocks(in_range, t_va)
+    # the part of the validation run the diagnosis uses: the in-range part, unless it is too short to
+    # judge anything (then the whole run with the declared inputs as measured, never clipped)
+    n_in = int(np.sum(np.isfinite(block_means(t_va, {"r": np.where(in_blocks, y_val, np.nan)}, BLOCK_S).columns["r"])))
+    if n_in >= MIN_DIAGNOSIS_BLOCKS:
+        diag, diag_label = in_blocks, "validation (in range)"
+    else:
+        diag = np.ones(len(validate), dtype=bool)
+        diag_label = (f"validation (whole run, inputs unclipped: only {n_in} in-range blocks of 100 s, fewer than "
+                      f"{MIN_DIAGNOSIS_BLOCKS})")
     X_dep = design.validate_deployed if design.validate_deployed is not None else design.validate
 
     # TRAIN: choose the effects (search on block means)
@@ -169,10 +180,11 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                             declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
                             else np.zeros((len(ev["y"]), 0)),
                             families=fx.families(ctx, inputs_tr))
-    # the training record's noise floor, from the declared model's residual at short taus: the
-    # search stops once the training residual is within STOP_RATIO of it
+    # the search stops once the training residual is within STOP_RATIO of the white part of the noise
+    # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
+    # slow structure still in that residual reads as flicker)
     r_declared = y_train - design.train @ lstsq(design.train, y_train)
-    floor_start = fit_noise_model([(r_declared, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0])
+    floor_start = fit_noise_model([(r_declared, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
     stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
     chosen, steps = search(problem, stop_std100=stop)
 
@@ -188,7 +200,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                 y_val - stack(effs, X_dep, inputs_va) @ beta)
 
     def val_in_range(effs) -> float:
-        return std100(np.where(in_range, fit(effs)[2], np.nan), t_va)
+        return std100(np.where(diag, fit(effs)[2], np.nan), t_va)
 
     # VALIDATE: confirm each chosen effect on the in-range part (backward, never worse)
     kept = list(chosen)
@@ -222,7 +234,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     after = _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range)
 
     # noise floor from the final residuals at short taus
-    va_in = np.where(in_range, r_va, np.nan)
+    va_in = np.where(diag, r_va, np.nan)
     model = fit_noise_model([(r_tr, sample_period(t_tr)), (va_in, sample_period(t_va))])
     n_in_blocks = int(np.sum(np.isfinite(block_means(t_va, {"r": va_in}, BLOCK_S).columns["r"])))
     floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S)
@@ -231,7 +243,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     structure = {"train": describe_structure(r_tr, t_tr, floor_tr["noise_floor_dph"]),
                  "validation": describe_structure(va_in, t_va, floor)}
     if structure["validation"].get("testable"):
-        judged_on, judged_std, judged_floor = "validation (in range)", after["validation_std100_dph"], floor_val
+        judged_on, judged_std, judged_floor = diag_label, structure["validation"]["std100_dph"], floor_val
     else:
         judged_on, judged_std, judged_floor = "train", after["train_std100_dph"], floor_tr
     at = at_floor(judged_std, judged_floor)
@@ -245,7 +257,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     else:
         verdict = "no_effect_missing" if at else "unexplained_structure_remains"
 
-    added = _effect_entries(problem, kept_t, steps, fit, in_range, t_va, before)
+    added = _effect_entries(problem, kept_t, steps, fit, diag, t_va, before)
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
                 "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
                 "status": "did not generalise" if np.isfinite(w) else
@@ -254,7 +266,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     names = list(design.names) + [nm for e in kept_t for nm in e.columns(fine).keys()]
     floor_doc = {**floor_val, "train_record": floor_tr, "noise_model": model.summary(),
                  "method": "Allan variance of the final residuals (train + in-range validation) fitted "
-                           "with quantisation, white and flicker terms (plus a tau^2 structure term left "
+                           "with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
                            "out of the floor) at taus <= %.0f s; expected std of 100-s means over the "
                            "in-range validation record (Barnes B1); 90 %% sampling interval" % model.tau_max_s}
     report = {
@@ -278,7 +290,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             "declared_fit": "train",
             "effect_selection_and_parameters": "train (delta-BIC with effective n, HAC Wald, blocked "
                                                "cross-validation over contiguous train segments)",
-            "generalisation_check": "validation, in-range part only",
+            "generalisation_check": diag_label,
             "noise_floor": "train residual and in-range validation residual, taus <= %.0f s" % model.tau_max_s,
             "verdict": judged_on,
         },

@@ -9,7 +9,8 @@ and the signature each one explains (calibration-notes section 3), each on EVERY
                                 it enters through the declared polynomial's shape: columns
                                 (lag_tau(T_probe) - 25)^j, j = 1..order (the declared model's own
                                 powers of its probe stay in the design, so their span holds
-                                f(lag T) - f(T))
+                                f(lag T) - f(T)); on a probe the declared model does not use, also
+                                (T_probe - 25), so that lag_tau(T_probe) - T_probe is in the span
 ``gradient(a-b)``               a temperature difference between two probes
 ``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
 ``rate_squared(probe)``         (dT/dt)^2
@@ -283,8 +284,11 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     for p in probes:
         def lag(x: Inputs, tau, p=p):
             v = first_order_lag(x.temps[p], x.time, tau) - T0_C
-            return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
+            cols = {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
+            if p != ctx.primary_probe:            # lag_tau(T_p) - T_p needs T_p itself beside the lag
+                cols[f"({p}-25)"] = x.temps[p] - T0_C
+            return cols
         out.append(Family("thermal_lag", (("probe", p),), lag, "tau_s", LAG_TAUS_S))
 
     for a, b in combinations(probes, 2):

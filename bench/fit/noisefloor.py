@@ -38,6 +38,7 @@ from scipy.stats import chi2
 BLOCK_S = 100.0
 MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted
 NOISE_MUS = (-2.0, -1.0, 0.0)          # those that make the floor (tau^1 and tau^2: nuisance terms)
+WHITE_MUS = (-2.0, -1.0)
 INTERVAL = 0.90
 
 
@@ -61,22 +62,23 @@ class NoiseModel:
     def allan_var(self, tau: float, mus=NOISE_MUS) -> float:
         return float(sum(self.coef.get(mu, 0.0) * tau ** mu for mu in mus))
 
-    def floor(self, record_s: float, block_s: float = BLOCK_S) -> dict[str, Any]:
-        """Expected std of ``block_s`` means over ``record_s`` seconds, with its interval."""
+    def floor(self, record_s: float, block_s: float = BLOCK_S, mus: tuple[float, ...] = NOISE_MUS) -> dict[str, Any]:
+        """Expected std of ``block_s`` means over ``record_s`` seconds, with its interval (``mus``: the
+        noise terms counted; the white-only floor, ``mus=WHITE_MUS``, is a lower bound)."""
         m = max(2.0, np.floor(record_s / block_s))
-        parts = {mu: self.coef.get(mu, 0.0) * block_s ** mu * barnes_b1(m, mu) for mu in NOISE_MUS}
+        parts = {mu: self.coef.get(mu, 0.0) * block_s ** mu * barnes_b1(m, mu) for mu in mus}
         var = float(sum(parts.values()))
         if var <= 0:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")], "edf": 0.0,
                     "blocks": int(m)}
-        allan_100 = sum(self.coef.get(mu, 0.0) * block_s ** mu for mu in NOISE_MUS)
+        allan_100 = sum(self.coef.get(mu, 0.0) * block_s ** mu for mu in mus)
         b1_mix = var / allan_100 if allan_100 > 0 else 1.0
         edf = max(1.0, (m - 1.0) / max(b1_mix, 1.0))
         lo = np.sqrt(var * chi2.ppf((1 - INTERVAL) / 2, edf) / edf)
         hi = np.sqrt(var * chi2.ppf((1 + INTERVAL) / 2, edf) / edf)
         return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(lo), float(hi)], "edf": float(edf),
                 "blocks": int(m), "adev100_dph": float(np.sqrt(max(allan_100, 0.0))),
-                "flicker_share": float(parts[0.0] / var)}
+                "flicker_share": float(parts.get(0.0, 0.0) / var)}
 
     def summary(self) -> dict[str, Any]:
         h = self.coef

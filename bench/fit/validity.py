@@ -6,7 +6,8 @@ leaves that range (colder, hotter, steeper ramps) is split in two:
 
 * the **in-range** part: every declared input inside its training range.  There the deployed model
   (inputs clipped to the range) and the fitted equation are the same thing, so its error is the
-  model's own error.  ``validation_std100_dph`` and ``validation_rms_dph`` are measured there;
+  model's own error.  ``validation_std100_dph`` (over the 100-s blocks wholly in range) and
+  ``validation_rms_dph`` (over the in-range samples) are measured there;
 * the rest, where the deployed model clips its inputs.  ``validation_all_std100_dph`` is the whole
   run with the model as deployed (clipped); ``validation_coverage`` the in-range fraction.
 
@@ -52,6 +53,19 @@ def outside_summary(signals: Mapping[str, np.ndarray], ranges: Mapping[str, list
     return out
 
 
+def whole_blocks(mask: np.ndarray, time_s: np.ndarray, block_s: float = 100.0) -> np.ndarray:
+    """``mask`` reduced to the ``block_s`` blocks (from the run's start, as the std of 100-s means
+    counts them) that lie wholly inside it: a block mean is in range only if all its samples are."""
+    t = np.asarray(time_s, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    if len(t) == 0:
+        return m
+    block = np.floor((t - t[0]) / float(block_s)).astype(np.int64)
+    total = np.bincount(block)
+    inside = np.bincount(block, m.astype(np.int64), len(total))
+    return (inside == total)[block] & m
+
+
 def range_aware_errors(residual: np.ndarray, deployed_residual: np.ndarray, time_s: np.ndarray,
                        in_range: np.ndarray) -> dict[str, float]:
     """The four validation numbers: std of 100-s means and RMS on the in-range part, the in-range
@@ -60,7 +74,7 @@ def range_aware_errors(residual: np.ndarray, deployed_residual: np.ndarray, time
     r = np.asarray(residual, dtype=np.float64)
     usable = np.isfinite(r)
     inside = usable & in_range
-    r_in = np.where(inside, r, np.nan)
+    r_in = np.where(whole_blocks(in_range, time_s) & usable, r, np.nan)
     n_usable = int(usable.sum())
     return {
         "validation_std100_dph": bias_stability(time_s, r_in, 100.0),
