@@ -39,6 +39,7 @@ BLOCK_S = 100.0
 MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted
 NOISE_MUS = (-2.0, -1.0, 0.0)          # those that make the floor (tau^1 and tau^2: nuisance terms)
 WHITE_MUS = (-2.0, -1.0)
+TAU_MAX_S = 1100.0
 INTERVAL = 0.90
 
 
@@ -100,7 +101,7 @@ def _oadev_octave(x: np.ndarray, dt: float, tau_max: float) -> tuple[np.ndarray,
     return res.taus_s, res.adev ** 2, res.n
 
 
-def fit_noise_model(residuals: list[tuple[np.ndarray, float]], tau_max_s: float = 400.0) -> NoiseModel:
+def fit_noise_model(residuals: list[tuple[np.ndarray, float]], tau_max_s: float = TAU_MAX_S) -> NoiseModel:
     """Fit the power laws to the pooled Allan variance of one or more residual series (each given
     with its sample period).  Series are pooled per tau, weighted by their number of terms."""
     pooled: dict[float, list[float]] = {}
