@@ -387,7 +387,26 @@ def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tu
         chosen = problem.refit_jointly(chosen + move)
         steps.append({"added": [e.label for e in move], "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
-    return chosen, steps
+    return prune(problem, chosen, steps), steps
+
+
+def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
+          steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
+    """Backward pass on TRAIN: an effect that no longer passes the gates given all the others (an
+    early choice made redundant by later ones) is removed, the weakest first."""
+    current = tuple(effects)
+    while len(current) > 1:
+        weakest = None
+        for i, e in enumerate(current):
+            others = current[:i] + current[i + 1:]
+            ev = gates(problem, problem.score(others), problem.score(others + (e,)), (e,))
+            if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
+                weakest = (i, ev["delta_bic"])
+        if weakest is None:
+            break
+        steps.append({"pruned": current[weakest[0]].label, "delta_bic_given_the_others": weakest[1]})
+        current = current[:weakest[0]] + current[weakest[0] + 1:]
+    return current
 
 
 def _describe(eff: fx.Effect, ev: dict[str, Any]) -> dict[str, Any]:
