@@ -11,6 +11,7 @@ state; the bench workers (``bench.worker``) execute runs.  Run it with ``bench s
 from __future__ import annotations
 
 from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
 
 from api import dashboard, problems
 from api.auth import parse_tokens, tokens_from_env
@@ -41,25 +42,25 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
     app.state.stale_after_s = stale_after_s
     app.state.sse_poll_s = sse_poll_s
     app.state.jobs = []
+    from bench.metrics import api_registry
+    app.state.metrics_registry = api_registry(db)
     problems.install(app)
     app.include_router(runs.router)
     app.include_router(fits.router)
     app.include_router(meta.router)
     app.include_router(dashboard.router)
+
+    @app.get("/", include_in_schema=False)
+    def root() -> RedirectResponse:
+        return RedirectResponse("/ui/", status_code=307)
+
     return app
 
 
 def app_from_env() -> FastAPI:
     """Factory for ``uvicorn --factory api.app:app_from_env``: database (``BENCH_DATABASE_URL``), tokens
     (``BENCH_TOKENS``) and the worker staleness limit (``BENCH_STALE_AFTER_S``, wall seconds, default 15)
-    from the environment."""
-    import os
+    from the environment (``bench.settings``)."""
+    from bench.settings import load_settings
 
-    stale = os.environ.get("BENCH_STALE_AFTER_S", "").strip()
-    try:
-        stale_s = float(stale) if stale else 15.0
-    except ValueError:
-        raise ValueError(f"BENCH_STALE_AFTER_S={stale!r} is not a number of seconds") from None
-    if not stale_s > 0:
-        raise ValueError(f"BENCH_STALE_AFTER_S must be > 0, got {stale_s}")
-    return create_app(stale_after_s=stale_s)
+    return create_app(stale_after_s=load_settings().stale_after_s)

@@ -9,7 +9,6 @@ only ``/health`` and the API documentation answer without one.
 from __future__ import annotations
 
 import hmac
-import os
 from dataclasses import dataclass
 
 from fastapi import Depends, Request
@@ -51,7 +50,9 @@ def parse_tokens(text: str | None) -> dict[str, str]:
 
 
 def tokens_from_env() -> dict[str, str]:
-    return parse_tokens(os.environ.get(ENV_TOKENS))
+    from bench.settings import load_settings
+
+    return parse_tokens(load_settings().tokens)
 
 
 _bearer = HTTPBearer(auto_error=False, description="A token from BENCH_TOKENS (role:token pairs)")

@@ -52,3 +52,34 @@ def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
                                     "probe": (res.get("definition") or {}).get("probe"),
                                     "validity": res.get("validity"), "definition": res.get("definition")}
     return {"gyro_id": gyro_id, "models": list(models.values())}
+
+
+def load_fit_results(db: Database, gyro_id: str, model: str, *, version: int | None = None):
+    """The ``FitResult`` of each channel of one model's accepted version (or ``version``), and a label
+    naming gyro, model, version and runs.  Raises ``NoCoefficients`` like ``load_coefficients``."""
+    from bench.fit.base import FitResult
+
+    doc = load_coefficients(db, gyro_id, model=model, version=version)
+    m = doc["models"][0]
+    f = Fit.__table__.c
+    stmt = (select(f.channel, f.result).where(f.gyro_id == gyro_id, f.model == model, f.version == m["version"])
+            .order_by(f.channel))
+    with db.engine.connect() as conn:
+        rows = conn.execute(stmt).all()
+    fields = ("model", "channel", "target", "definition", "coefficients", "units", "validity", "stats")
+    results = [FitResult(**{k: (r.result or {})[k] for k in fields if k in (r.result or {})}) for r in rows]
+    label = (f"model {model} version {m['version']}{' (accepted)' if m['accepted'] else ''}, "
+             f"runs {', '.join(str(x) for x in m['run_ids'] or [])}")
+    return results, label
+
+
+def export_coefficients(db: Database, gyro_id: str, model: str, fmt: str, *, version: int | None = None,
+                        options: dict[str, Any] | None = None) -> tuple[str, str, str]:
+    """(text, media type, file suffix) of a gyro's model in ``fmt`` (``bench.fit.firmware.FORMATS``).
+    Raises ``NoCoefficients`` or ``bench.fit.firmware.NotExpressible`` (with the reason)."""
+    from bench.fit.firmware import FORMATS, NotExpressible, render
+
+    if fmt not in FORMATS:
+        raise NotExpressible(f"unknown format {fmt!r} (use one of {', '.join(FORMATS)})")
+    results, label = load_fit_results(db, gyro_id, model, version=version)
+    return render(fmt, gyro_id, results, label=label, options=options)

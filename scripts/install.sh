@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything the product and its tests need on a fresh Debian machine with Python 3.11:
-# Debian tools used by the tests (mbpoll, socat) and a virtual environment in .venv with the package.
+# Debian tools used by the tests (mbpoll, socat) and a virtual environment in .venv with the package,
+# its test extras and the versions pinned in constraints.txt.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -17,5 +18,6 @@ fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip 2>/dev/null || true
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+# exact versions from constraints.txt (regenerate with scripts/lock.sh): two installs a month apart match
+.venv/bin/python -m pip install -q --disable-pip-version-check -c constraints.txt -e '.[test]'
 .venv/bin/python -c "import bench, pymodbus, sqlalchemy, numpy" 

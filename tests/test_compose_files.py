@@ -64,13 +64,16 @@ def compose() -> dict:
     from compose_spec import PyOptions
 
     text = COMPOSE.read_text()
-    parsed = PyOptions(apply_merge=True).from_yaml(text)     # raises ValueError naming the bad key / line
+    # the engine interpolates variables before it validates (a port's host address may be a variable)
+    parsed = PyOptions(apply_merge=True).from_yaml(interpolate(text))   # raises ValueError naming the bad key
     parsed.validate()                                        # references to volumes / networks / configs
-    doc = yaml.safe_load(text)
-    # the merge keys as the spec parser applied them: keep our view identical to the validated one
+    doc = yaml.safe_load(text)                               # uninterpolated, merge keys applied
     for name, svc in parsed.to_dict()["services"].items():
         assert set(svc) <= set(doc["services"][name]) | {"environment"}, name
-        doc["services"][name]["environment"] = svc.get("environment", {})
+        raw_env = doc["services"][name].get("environment") or {}
+        assert {k: interpolate(str(v)) for k, v in raw_env.items()} == \
+            {k: str(v) for k, v in (svc.get("environment") or {}).items()}, name
+        doc["services"][name]["environment"] = raw_env
     return doc
 
 
@@ -148,6 +151,27 @@ def test_environment_wiring(compose):
     assert tokens.startswith("${BENCH_TOKENS:?"), "BENCH_TOKENS must come from the environment, with no default secret"
     port = svcs["api"]["command"][svcs["api"]["command"].index("--port") + 1]
     assert any(str(p).endswith(f":{port}") for p in svcs["api"]["ports"])
+
+
+def test_secrets_are_required_and_the_api_is_local_by_default(compose):
+    """No known default password; the API is published on the loopback interface unless told otherwise."""
+    svcs = services(compose)
+    for name, svc in svcs.items():
+        for key, value in (svc.get("environment") or {}).items():
+            for m in _VAR.finditer(str(value)):
+                if m.group(1) in ("POSTGRES_PASSWORD", "BENCH_TOKENS"):
+                    assert m.group(2) in (":?", "?"), f"{name}.{key}: ${{{m.group(1)}}} must be required, not defaulted"
+    assert "${POSTGRES_PASSWORD:?" in str(svcs["postgres"]["environment"]["POSTGRES_PASSWORD"])
+    for name, svc in svcs.items():
+        for spec in svc.get("ports", []):
+            text = interpolate(str(spec)) if isinstance(spec, str) else spec
+            if isinstance(text, dict):
+                host_ip = interpolate(str(text.get("host_ip", "")))
+            else:
+                parts = text.split(":")
+                assert len(parts) == 3, f"{name}: port {spec!r} publishes on every interface; give a host address"
+                host_ip = parts[0]
+            assert host_ip == "127.0.0.1", f"{name}: port {spec!r} is published on {host_ip!r} by default"
 
 
 def _bench_app():
@@ -280,7 +304,8 @@ def test_dockerfile_base_install_and_copied_sources():
     text = DOCKERFILE.read_text()
     lines = [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.strip().startswith("#")]
     assert lines[0] == "FROM python:3.11-slim"
-    assert re.search(r"pip install \.(\s|$)", text), "the image installs the package from the source tree"
+    assert re.search(r"pip install -c constraints\.txt \.(\s|$)", text), \
+        "the image installs the package from the source tree with the pinned versions"
     for ln in lines:
         if ln.startswith("COPY "):
             for src in shlex.split(ln)[1:-1]:

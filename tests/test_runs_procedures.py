@@ -109,6 +109,7 @@ def _check_thermal_ramp_and_export(tmp_path, url: str, doc: dict) -> None:
     assert set(ds.gyro_channels()) == {"x", "y", "z"} and ds.temp_names() == ["t1", "t2", "t3", "t4"]
     assert len(ds) > 100 and np.all(np.diff(ds.time) > 0)
     assert ds.meta["run_id"] == str(rid) and ds.meta["gyro_id"] == "G-thermal_ramp"
+    assert ds.meta["channel_probes"] == {"x": "t1", "y": "t2", "z": "t3"}     # the simulated bench's config
     assert np.nanmax(ds["chamber_sp"]) == pytest.approx(26.0) and np.nanmin(ds["chamber_pv"]) < 24.0
     code, out, _ = cli(["export", str(rid), "--format", "csv", "--db", url, "--recorded-only"])
     rec = read_csv("stdout.csv", text=out)

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from sqlalchemy import and_, func, select
 
 from api.auth import Principal, require
@@ -133,6 +133,36 @@ async def coefficients(gyro_id: str, request: Request, db: Database = Depends(ge
         raise Problem(422, "Invalid input", str(exc)) from None
     except NoCoefficients as exc:
         raise Problem(404, "No coefficients" if exc.gyro_known else "Gyro not found", str(exc)) from None
+
+
+@router.get("/gyros/{gyro_id}/coefficients/export",
+            summary="One model's coefficients for firmware: json, PX4 or ArduPilot parameters, or a C header",
+            responses={200: {"content": {"text/plain": {}, "text/x-c": {}, "application/json": {}}},
+                       422: {"description": "the model cannot be expressed in that format (reason given)"}})
+def export_coefficients(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+                        model: str = Query(..., min_length=1, max_length=300),
+                        format: Literal["json", "px4", "ardupilot", "c-header"] = Query(...),
+                        version: int | None = Query(None, ge=1, le=1_000_000),
+                        px4_instance: int = Query(0, ge=0, le=3, description="PX4 gyro instance (TC_G<i>_)"),
+                        px4_device_id: int = Query(0, ge=-2**31, le=2**31 - 1, description="PX4 TC_G<i>_ID"),
+                        ardupilot_imu: int = Query(1, ge=1, le=3, description="ArduPilot IMU number (INS_TCAL<n>_)"),
+                        ardupilot_caltemp_c: float | None = Query(None, ge=-100, le=200,
+                                                                  description="temperature of the gyro offsets")):
+    from api.coefficients import export_coefficients as export
+    from bench.fit.firmware import NotExpressible
+
+    if not _valid_id(gyro_id):
+        raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
+    options = {"px4_instance": px4_instance, "px4_device_id": px4_device_id, "ardupilot_imu": ardupilot_imu,
+               "ardupilot_caltemp_c": ardupilot_caltemp_c}
+    try:
+        text, media, suffix = export(db, gyro_id, model, format, version=version, options=options)
+    except NotExpressible as exc:
+        raise Problem(422, "Not expressible in this format", str(exc)) from None
+    except NoCoefficients as exc:
+        raise Problem(404, "No coefficients" if exc.gyro_known else "Gyro not found", str(exc)) from None
+    return Response(text, media_type=media,
+                    headers={"Content-Disposition": f'attachment; filename="{gyro_id}.{_safe_name(model)}{suffix}"'})
 
 
 def _valid_id(text: str) -> bool:
@@ -345,3 +375,8 @@ def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Princ
     except (BenchError, ValueError, KeyError) as exc:
         raise Problem(422, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
     return HTMLResponse(page)
+
+
+def _safe_name(text: str) -> str:
+    import re
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text)[:64]

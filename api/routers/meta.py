@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends, Request, Response
 from sqlalchemy import select, text
 
 import procedures
@@ -63,3 +63,12 @@ def health(db: Database = Depends(get_db)) -> dict[str, Any]:
     except Exception as exc:  # noqa: BLE001 - health reports the failure instead of raising
         raise Problem(503, "Database unavailable", f"{type(exc).__name__}: {str(exc).splitlines()[0]}") from None
     return {"status": "ok", "database": db.dialect}
+
+
+@router.get("/metrics", tags=["health"], summary="Prometheus metrics (text exposition format, bench_ prefix)",
+            response_class=Response, responses={200: {"content": {"text/plain": {}}}})
+def metrics(request: Request, _: Principal = Depends(require("viewer"))) -> Response:
+    from bench.metrics import exposition
+
+    body, content_type = exposition(request.app.state.metrics_registry)
+    return Response(body, media_type=content_type)

@@ -36,7 +36,6 @@ Database: ``--db URL``, else ``$BENCH_DATABASE_URL``, else the SQLite file ``var
 from __future__ import annotations
 
 import json
-import os
 import signal
 import sys
 import threading
@@ -110,7 +109,9 @@ def _open_db(url: str | None):
 def _bench_config_from_file(config_path: str | None):
     from bench.config import BenchConfig
 
-    path = config_path or os.environ.get(CONFIG_ENV)
+    from bench.settings import load_settings
+
+    path = config_path or load_settings().config
     if not path:
         fail(f"no bench config: give --config PATH, set ${CONFIG_ENV}, or use --sim for the simulated bench")
     return BenchConfig.load(path)

@@ -5,13 +5,13 @@
   ``--config FILE`` (repeatable) the workers drive the benches those files describe.
 * ``worker``: one bench's worker on its own (the API may run elsewhere; killing either leaves the
   other going, and a killed worker's run is resumed when a worker for that bench returns).
-* ``coefficients``: a gyro's accepted coefficients from the database.
+* ``coefficients``: a gyro's accepted coefficients from the database, or one model exported for firmware
+  (``--format json|px4|ardupilot|c-header``, ``bench.fit.firmware``; refused with the reason, exit code 3).
 * ``import``: a measured-data CSV (v1) stored as a completed run, so it can be fitted like a recorded one.
 """
 from __future__ import annotations
 
 import json
-import logging
 import secrets
 import signal
 import sys
@@ -57,19 +57,35 @@ def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
     return make_clock(speed)
 
 
-def _tokens_or_generate() -> str:
+def write_secret_file(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` readable by its owner only (mode 0600, also when the file existed)."""
     import os
 
-    from api.auth import ENV_TOKENS
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, text.encode())
+    finally:
+        os.close(fd)
+    return path
 
-    text = os.environ.get(ENV_TOKENS, "").strip()
-    if text:
-        return text
+
+def _tokens_or_generate() -> str:
+    """``BENCH_TOKENS``, or fresh tokens written to ``BENCH_TOKENS_FILE`` (0600) whose path is printed;
+    the tokens themselves never go to the log."""
+    from api.auth import ENV_TOKENS
+    from bench.settings import load_settings
+
+    settings = load_settings()
+    if settings.tokens:
+        return settings.tokens
     pairs = {role: secrets.token_urlsafe(18) for role in ("viewer", "operator", "admin")}
-    typer.secho(f"{ENV_TOKENS} is not set; tokens for this session:", fg=typer.colors.YELLOW, err=True)
-    for role, token in pairs.items():
-        typer.echo(f"  {role}: {token}", err=True)
-    return ",".join(f"{r}:{t}" for r, t in pairs.items())
+    text = ",".join(f"{r}:{t}" for r, t in pairs.items())
+    path = write_secret_file(settings.tokens_file, text + "\n").resolve()
+    typer.secho(f"{ENV_TOKENS} is not set; generated viewer, operator and admin tokens are in {path} (mode 0600, "
+                f"{ENV_TOKENS} format)", fg=typer.colors.YELLOW, err=True)
+    return text
 
 
 # ------------------------------------------------------------------------------------------ serve
@@ -83,15 +99,18 @@ def serve_command(
     scenario: str = typer.Option("default", "--scenario", help="simulated bench scenario (name or JSON file)"),
     bench_name: str = typer.Option("sim1", "--bench-name", help="name of the simulated bench"),
     log_level: str = typer.Option("info", "--log-level"),
+    log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
+                                             "default $BENCH_LOG_FORMAT or text"),
 ) -> None:
-    """Run the API and one worker per configured bench in this process."""
+    """Run the API (metrics at /metrics) and one worker per configured bench in this process."""
     import uvicorn
 
     from api.app import create_app
+    from bench.logs import configure_logging, uvicorn_log_config
     from bench.storage import open_database
     from bench.worker import Worker
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    log_format = configure_logging(log_level, log_format)
     db = open_database()
     tokens = _tokens_or_generate()
     sim = None
@@ -112,7 +131,8 @@ def serve_command(
             w.start_thread()
         typer.echo(f"database {db.dialect}; benches: {', '.join(w.bench_name for w in workers)}; "
                    f"API on http://{host}:{port}/docs", err=True)
-        uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower())
+        uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower(),
+                    log_config=uvicorn_log_config(log_format))
     finally:
         for w in workers:
             w.stop()
@@ -134,6 +154,11 @@ def worker_command(
                                         "the worker died (wall seconds)"),
     poll_s: float = typer.Option(0.5, "--poll", min=0.01, help="queue polling period, wall seconds"),
     log_level: str = typer.Option("info", "--log-level"),
+    log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
+                                             "default $BENCH_LOG_FORMAT or text"),
+    metrics_port: Optional[int] = typer.Option(None, "--metrics-port", min=0, max=65535,
+                                               help="serve Prometheus metrics on this port (0: any free port)"),
+    metrics_addr: str = typer.Option("127.0.0.1", "--metrics-addr", help="address of the metrics server"),
 ) -> None:
     """Serve one bench: claim its queued runs, execute them, resume a run whose worker died."""
     from bench.config import BenchConfig
@@ -142,7 +167,9 @@ def worker_command(
     from bench.worker import Worker
     from sqlalchemy import select
 
-    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from bench.logs import configure_logging
+
+    configure_logging(log_level, log_format)
     db = open_database()
     clock_doc = None
     if config:
@@ -158,6 +185,11 @@ def worker_command(
     worker = Worker(db, bench, cfg, None, _clock(clock_doc, speed), heartbeat_s=heartbeat_s,
                     stale_after_s=stale_after_s, poll_s=poll_s)
     signal.signal(signal.SIGTERM, lambda *_: worker.stop())
+    if metrics_port is not None:
+        from bench.metrics import serve_worker_metrics
+
+        server, _thread = serve_worker_metrics(worker, metrics_port, metrics_addr)
+        typer.echo(f"worker metrics on http://{metrics_addr}:{server.server_port}/metrics", err=True)
     typer.echo(f"worker {worker.worker_id} serving bench {bench!r} ({db.dialect})", err=True)
     worker.run_forever()
 
@@ -169,12 +201,42 @@ def coefficients_command(
     model: Optional[str] = typer.Option(None, "--model", help="only this model"),
     version: Optional[int] = typer.Option(None, "--version", min=1, help="this version (needs --model)"),
     as_json: bool = typer.Option(False, "--json", help="print the JSON document"),
+    fmt: Optional[str] = typer.Option(None, "--format",
+                                      help="export one model (--model) as json | px4 | ardupilot | c-header"),
+    output: Optional[str] = typer.Option(None, "-o", "--output", help="write the export to this file"),
+    px4_instance: int = typer.Option(0, "--px4-instance", min=0, max=3, help="PX4 gyro instance (TC_G<i>_)"),
+    px4_device_id: int = typer.Option(0, "--px4-device-id", help="PX4 TC_G<i>_ID: the gyro's device id"),
+    ardupilot_imu: int = typer.Option(1, "--ardupilot-imu", min=1, max=3, help="ArduPilot IMU number (INS_TCAL<n>_)"),
+    ardupilot_caltemp: Optional[float] = typer.Option(None, "--ardupilot-caltemp",
+                                                      help="temperature of the exported gyro offsets (default 35 C)"),
 ) -> None:
-    """Print a gyro's coefficients: the latest accepted fit of each model."""
+    """Print a gyro's coefficients: the latest accepted fit of each model, or export one model for firmware."""
     from api.coefficients import NoCoefficients, load_coefficients
     from bench.storage import open_database
 
     db = open_database()
+    if fmt is not None:
+        from api.coefficients import export_coefficients
+        from bench.fit.firmware import NotExpressible
+
+        if model is None:
+            fail("--format needs --model: an export holds one model")
+        options = {"px4_instance": px4_instance, "px4_device_id": px4_device_id, "ardupilot_imu": ardupilot_imu,
+                   "ardupilot_caltemp_c": ardupilot_caltemp}
+        try:
+            text, _media, _suffix = export_coefficients(db, gyro, model, fmt, version=version, options=options)
+        except NoCoefficients as exc:
+            fail(str(exc), code=1)
+        except NotExpressible as exc:
+            fail(f"cannot export: {exc}", code=3)
+        if output is None or output == "-":
+            sys.stdout.write(text)
+        else:
+            tmp = Path(output + ".tmp")
+            tmp.write_text(text)
+            tmp.replace(output)
+            typer.echo(f"wrote {output}", err=True)
+        return
     try:
         doc = load_coefficients(db, gyro, model=model, version=version)
     except NoCoefficients as exc:
@@ -195,8 +257,9 @@ def coefficients_command(
         table.add_column("unit")
         for ch, entry in m["channels"].items():
             units = entry.get("units") or {}
+            label = f"{ch} ({entry['probe']})" if entry.get("probe") else ch
             for term, value in entry["coefficients"].items():
-                table.add_row(ch, term, f"{value:.9g}" if isinstance(value, (int, float)) else str(value),
+                table.add_row(label, term, f"{value:.9g}" if isinstance(value, (int, float)) else str(value),
                               str(units.get(term, "")))
         console.print(table)
 

@@ -112,8 +112,8 @@ def parse_csv_text(text: str, *, source: str = "<text>") -> Dataset:
                             meta[key] = parse_channel_probes(value)
                         except ValueError as exc:
                             raise DataFormatError(str(exc), line=i + 1, source=source) from None
-                        continue
-                    meta[key] = value
+                    else:
+                        meta[key] = value
             else:
                 notes.append(line[1:].strip())
         i += 1

@@ -262,6 +262,17 @@ def _placeholder_target(name: str, channel_probe: str | None, columns: set[str],
     return channel_probe if name == CHANNEL_PROBE else f"d{channel_probe}"
 
 
+def _refuse_zero_differences(node: Node, original: Node, text: str, channel_probe: str | None) -> None:
+    """A difference of a signal with itself (``(tc-t4)`` on a channel whose probe is t4) is a column of
+    zeros, not a regressor: refuse it by name."""
+    if node["op"] == "sub" and node_text(node["args"][0]) == node_text(node["args"][1]):
+        said, means = node_text(original), node_text(node)
+        where = f" (the channel's probe is {channel_probe!r})" if said != means else ""
+        raise FormulaError(text, None, f"{said!r} is {means!r}{where}: identically zero, not a regressor")
+    for sub, orig in zip(node.get("args", []), original.get("args", [])):
+        _refuse_zero_differences(sub, orig, text, channel_probe)
+
+
 def uses_channel_probe(text: str) -> bool:
     """True when the formula names the channel's own probe (``tc`` or ``dtc``)."""
     def walk(node: Node) -> bool:
@@ -463,6 +474,7 @@ def compile_terms(terms: list[tuple[str, str]], columns: Iterable[str], *, rate_
         if len(parsed) != 1:
             raise FormulaError(expr, None, "each named term must be a single term")
         node = _resolve(parsed[0], cols, rate_window_s, expr, channel_probe)
+        _refuse_zero_differences(node, parsed[0], expr, channel_probe)
         names.append(name)
         nodes.append(node)
         units[name] = coefficient_unit(target_unit, node_unit(node))
@@ -480,6 +492,7 @@ def compile_formula(text: str, columns: Iterable[str], *, rate_window_s: float =
     nodes = [_resolve(p, cols, rate_window_s, text, channel_probe) for p in parsed]
     seen: dict[str, str] = {}
     for p, node in zip(parsed, nodes):
+        _refuse_zero_differences(node, p, text, channel_probe)
         resolved = node_text(node)
         if resolved in seen:
             raise FormulaError(text, _atom_position(text, CHANNEL_PROBE), f"terms {seen[resolved]!r} and "

@@ -11,7 +11,6 @@
 """
 from __future__ import annotations
 
-import os
 import re
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -23,10 +22,10 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError, OperationalError
 from sqlalchemy.orm import Session, sessionmaker
 
+from bench.settings import DEFAULT_SQLITE_PATH  # noqa: F401  (re-exported)
 from bench.storage.errors import StorageError, StorageUnavailable
 
 ENV_URL = "BENCH_DATABASE_URL"
-DEFAULT_SQLITE_PATH = Path("var") / "bench.sqlite"
 MIGRATIONS_DIR = Path(__file__).with_name("migrations")
 _SCHEMA_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,62}$")
 _MIGRATION_LOCK_KEY = 0x6779726F   # pg advisory lock key ("gyro") serialising concurrent upgrades
@@ -34,10 +33,9 @@ _MIGRATION_LOCK_KEY = 0x6779726F   # pg advisory lock key ("gyro") serialising c
 
 def default_url() -> str:
     """``$BENCH_DATABASE_URL`` if set, else an SQLite file ``var/bench.sqlite`` under the CWD."""
-    url = os.environ.get(ENV_URL, "").strip()
-    if url:
-        return url
-    return f"sqlite:///{DEFAULT_SQLITE_PATH}"
+    from bench.settings import load_settings
+
+    return load_settings().database_url_or_default
 
 
 def make_engine(url: str, *, schema: str | None = None, busy_timeout_ms: int = 30_000,

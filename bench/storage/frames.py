@@ -32,6 +32,7 @@ import math
 import threading
 import time
 import uuid
+import weakref
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -155,6 +156,14 @@ def _short(exc: BaseException) -> str:
     return f"{type(orig or exc).__name__}: {text.splitlines()[0] if text else ''}"
 
 
+_LIVE: "weakref.WeakSet[FrameWriter]" = weakref.WeakSet()     # every writer of this process (metrics)
+
+
+def live_writer_statuses() -> list["WriterStatus"]:
+    """``status()`` of every frame writer of this process that is not closed (for ``bench.metrics``)."""
+    return [st for st in (w.status() for w in list(_LIVE)) if not st.closed]
+
+
 class FrameWriter:
     """Background batched writer for one run.  Thread-safe; see the module docstring.
 
@@ -217,6 +226,7 @@ class FrameWriter:
         self._prev_time: float | None = None
         self._thread: threading.Thread | None = None
         self._take_over()
+        _LIVE.add(self)
         if autostart:
             self._thread = threading.Thread(target=self._run, name=f"frame-writer-run{self.run_id}", daemon=True)
             self._thread.start()
@@ -674,6 +684,7 @@ class FrameWriter:
         return lost
 
     def status(self) -> WriterStatus:
+        """Counters of this writer (``live_writer_statuses()`` gives every writer of the process)."""
         with self._cond:
             return WriterStatus(run_id=self.run_id, next_index=self._next_index,
                                 committed_frames=self._committed_frames, committed_index=self._committed_index,
