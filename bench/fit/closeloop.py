@@ -186,7 +186,15 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     r_declared = y_train - design.train @ lstsq(design.train, y_train)
     floor_start = fit_noise_model([(r_declared, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
     stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
-    chosen, steps = search(problem, stop_std100=stop)
+
+    def stop_at(effs) -> float:
+        # once effects are in, the residual's own noise floor (flicker included) is the target
+        Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
+        r = y_train - Xt @ lstsq(Xt, y_train)
+        fl = fit_noise_model([(r, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
+        return STOP_RATIO * fl if np.isfinite(fl) else np.inf
+
+    chosen, steps = search(problem, stop_std100=stop, stop_at=stop_at)
 
     # full-rate columns of the chosen effects, fitted on TRAIN
     def stack(effs, X, inputs):

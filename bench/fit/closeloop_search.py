@@ -26,13 +26,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from bench.fit import effects as fx
-from bench.signal import block_means, hac_wald_test, lag1_autocorrelation
+from bench.signal import block_means, hac_wald_test, lag1_autocorrelation, newey_west_lags
 
 FINE_S = 10.0
 BLOCK_S = 100.0
@@ -272,13 +272,16 @@ def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[
 
 
 def hac_wald_p(X: np.ndarray, y: np.ndarray, columns: list[int]) -> float:
-    """p-value of ``bench.signal.hac_wald_test`` (1 when the robust covariance is singular)."""
+    """p-value of ``bench.signal.hac_wald_test`` (1 when the robust covariance is singular), with
+    sqrt(n) Newey-West lags when that is more than the default: residuals with flicker (1/f) noise
+    keep their correlation far longer than the default lag count assumes."""
     import warnings
 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")       # rank-deficient candidates: judged by the p-value
-            return hac_wald_test(X, y, columns).p_value
+            n = int(np.sum(np.all(np.isfinite(X), axis=1) & np.isfinite(y)))
+            return hac_wald_test(X, y, columns, maxlags=max(newey_west_lags(n), int(np.ceil(np.sqrt(n))))).p_value
     except (np.linalg.LinAlgError, ValueError):
         return 1.0
 
@@ -317,7 +320,8 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
             "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
 
 
-def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
+def search(problem: SearchProblem, stop_std100: float | None = None,
+           stop_at: Callable[[tuple[fx.Effect, ...]], float] | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
     """Forward selection with pair look-ahead, joint re-fits and swaps.  Returns the chosen effects
     and the evidence of each step (what was added, its gates, the runner-up).
 
@@ -331,6 +335,8 @@ def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tu
     while len(chosen) < MAX_EFFECTS:
         base = problem.score(chosen)
         left = float(np.nanstd(base.resid, ddof=1))
+        if chosen and stop_at is not None:
+            stop_std100 = stop_at(chosen)
         if stop_std100 is not None and left <= stop_std100:
             steps.append({"stopped": f"training residual std100 {left:.4g} is at the noise floor "
                                      f"(<= {stop_std100:.4g})"})
@@ -365,7 +371,7 @@ def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tu
                     each = [hac_wald_p(*_xy(problem, chosen + pair), _cols_of(problem, chosen + pair, j))
                             for j in range(len(chosen), len(chosen) + 2)]
                     ev["each_hac_wald_p"] = each
-                    ev["passed"] = max(each) < 0.01
+                    ev["passed"] = max(each) < P_MAX
                 pairs.append((pair, new, ev))
         everything = ranked + pairs
         if not everything:
@@ -375,7 +381,9 @@ def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tu
         passing = sorted((r for r in ranked if r[2]["passed"]), key=lambda r: bic[id(r)])
         passing_pairs = sorted((r for r in pairs if r[2]["passed"]), key=lambda r: bic[id(r)])
         pick = passing[0] if passing else None
-        if passing_pairs and (pick is None or bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC):
+        if passing_pairs and (pick is None or (bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC
+                                               and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
+                                               and not _at_floor(pick, chosen, stop_at))):
             pick = passing_pairs[0]
         if pick is None:
             break
@@ -388,6 +396,15 @@ def search(problem: SearchProblem, stop_std100: float | None = None) -> tuple[tu
         steps.append({"added": [e.label for e in move], "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
     return prune(problem, chosen, steps), steps
+
+
+def _at_floor(single, chosen, stop_at) -> bool:
+    """The best single addition already brings the training residual to its noise floor: a pair
+    would only fit noise."""
+    if stop_at is None:
+        return False
+    left = float(np.nanstd(single[1].resid, ddof=1))
+    return left <= stop_at(chosen + single[0])
 
 
 def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
