@@ -9,8 +9,8 @@ and the signature each one explains (calibration-notes section 3), each on EVERY
                                 it enters through the declared polynomial's shape: columns
                                 (lag_tau(T_probe) - 25)^j, j = 1..order (the declared model's own
                                 powers of its probe stay in the design, so their span holds
-                                f(lag T) - f(T)); on a probe the declared model does not use, also
-                                (T_probe - 25), so that lag_tau(T_probe) - T_probe is in the span
+                                f(lag T) - f(T)); on a probe the declared polynomial is not in,
+                                the one column lag_tau(T_probe) - T_probe
 ``gradient(a-b)``               a temperature difference between two probes
 ``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
 ``rate_squared(probe)``         (dT/dt)^2
@@ -43,7 +43,7 @@ from bench.fit.base import Dataset
 from bench.signal import block_means, orientation_axes_per_sample, temperature_rate
 
 T0_C = 25.0
-LAG_TAUS_S = (30.0, 60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
@@ -284,11 +284,11 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     for p in probes:
         def lag(x: Inputs, tau, p=p):
             v = first_order_lag(x.temps[p], x.time, tau) - T0_C
-            cols = {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
+            if p != ctx.primary_probe:
+                # a probe the declared polynomial is not in: the element's lag behind it, lag_tau(T_p) - T_p
+                return {f"lag{tau:.0f}({p})-{p}": v - (x.temps[p] - T0_C)}
+            return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
-            if p != ctx.primary_probe:            # lag_tau(T_p) - T_p needs T_p itself beside the lag
-                cols[f"({p}-25)"] = x.temps[p] - T0_C
-            return cols
         out.append(Family("thermal_lag", (("probe", p),), lag, "tau_s", LAG_TAUS_S))
 
     for a, b in combinations(probes, 2):
