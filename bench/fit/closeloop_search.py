@@ -188,20 +188,23 @@ class SearchProblem:
         """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
         kind with the others held."""
         current = tuple(effects)
-        best_ssr = self.ssr(current)
+        n_eff = self.score(current, with_cv=False).n_eff
+        best = self.bic(current, n_eff)
         for _ in range(JOINT_SWEEPS):
             changed = False
             for i, eff in enumerate(current):
                 others = current[:i] + current[i + 1:]
                 fams = [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
                 if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
-                    coarse = sorted(fams, key=lambda f: min(self.ssr(others + (f.at(v),)) for v in (f.grid or (None,))))
+                    coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
+                                                            for v in (f.grid or (None,))))
                     fams = coarse[:2]
                 for fam in fams:
-                    cand, s = self.best_value(fam, others)
-                    if s < best_ssr * (1 - 1e-9):
-                        current = others[:i] + (cand,) + others[i:]
-                        best_ssr, eff, changed = s, cand, True
+                    cand, _s = self.best_value(fam, others)
+                    trial = others[:i] + (cand,) + others[i:]
+                    b = self.bic(trial, n_eff)
+                    if b < best - 1e-9:             # BIC: another form or probe pays for its columns
+                        current, best, eff, changed = trial, b, cand, True
             if not changed:
                 break
         return current

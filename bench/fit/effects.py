@@ -5,12 +5,13 @@ continuous nonlinear parameter (a time constant, a threshold, a width) that the 
 scans on a grid and refines.  A family turns the run's ``Inputs`` into regressor columns.  The kinds
 and the signature each one explains (calibration-notes section 3), each on EVERY probe:
 
-``thermal_lag(probe, tau)``     the sensing element follows ``probe`` through a first-order lag tau;
-                                it enters through the declared polynomial's shape: columns
-                                (lag_tau(T_probe) - 25)^j, j = 1..order (the declared model's own
-                                powers of its probe stay in the design, so their span holds
-                                f(lag T) - f(T)); on a probe the declared polynomial is not in,
-                                the one column lag_tau(T_probe) - T_probe
+``thermal_lag(probe, tau)``     the sensing element follows ``probe`` through a first-order lag tau:
+                                the one column lag_tau(T_probe) - T_probe; and, on the declared
+                                model's own probe, through the declared polynomial's shape
+                                (form "polynomial"): columns (lag_tau(T) - 25)^j, j = 1..order (the
+                                declared powers stay in the design, so the span holds f(lag T) - f(T))
+The declared model's own probe is the default: a family on another probe (or a pair) pays one more
+searched parameter in the BIC.
 ``gradient(a-b)``               a temperature difference between two probes
 ``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
 ``rate_squared(probe)``         (dT/dt)^2
@@ -121,6 +122,7 @@ class Family:
     param: str | None = None                                 # name of the searched parameter
     grid: tuple[float, ...] = ()
     log_scale: bool = True
+    chosen_probe: bool = True      # the probe/pair was searched (False: the declared model's own probe)
 
     @property
     def label(self) -> str:
@@ -129,8 +131,8 @@ class Family:
     @property
     def n_nonlinear(self) -> int:
         """Searched nonlinear parameters, for the BIC penalty: the continuous one, and the probe or
-        pair choice when the family is one of several of its kind."""
-        return (1 if self.param else 0) + (1 if self.fixed else 0)
+        pair choice unless it is the declared model's own probe (the default, no choice made)."""
+        return (1 if self.param else 0) + (1 if self.fixed and self.chosen_probe else 0)
 
     def at(self, value: float | None) -> "Effect":
         return Effect(self, None if value is None else float(value))
@@ -281,36 +283,43 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     probes = [p for p in ctx.probes if p in inputs.temps]
     order = max(1, ctx.poly_order)
 
+    own = ctx.primary_probe
     for p in probes:
-        def lag(x: Inputs, tau, p=p):
+        def lag_linear(x: Inputs, tau, p=p):
+            # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
+            v = first_order_lag(x.temps[p], x.time, tau)
+            return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
+        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own))
+    if own in probes and order > 1:
+        def lag_shape(x: Inputs, tau, p=own):
+            # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
             v = first_order_lag(x.temps[p], x.time, tau) - T0_C
-            if p != ctx.primary_probe:
-                # a probe the declared polynomial is not in: the element's lag behind it, lag_tau(T_p) - T_p
-                return {f"lag{tau:.0f}({p})-{p}": v - (x.temps[p] - T0_C)}
             return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
-        out.append(Family("thermal_lag", (("probe", p),), lag, "tau_s", LAG_TAUS_S))
+        out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", LAG_TAUS_S,
+                          chosen_probe=False))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
                           lambda x, _v, a=a, b=b: {f"({a}-{b})": x.temps[a] - x.temps[b]}))
 
     for p in probes:
+        mine = p != own
         out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
-                          "window_s", RATE_WINDOWS_S))
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("rate_squared", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.rate(p, w) ** 2},
-                          "window_s", RATE_WINDOWS_S))
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("temp_rate_cross", (("probe", p),),
                           lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": (x.temps[p] - T0_C) * x.rate(p, w)},
-                          "window_s", RATE_WINDOWS_S))
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("hysteresis", (("probe", p), ("form", "relay")),
                           lambda x, thr, p=p: {f"relay{thr:.3g}(d{p})": relay_state(x.rates[p], thr)},
-                          "threshold_c_per_min", RELAY_THRESHOLDS))
+                          "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine))
         widths = _widths_for(inputs.temps[p])
         if widths:
             out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
                               lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
-                              "width_c", widths))
+                              "width_c", widths, chosen_probe=mine))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
