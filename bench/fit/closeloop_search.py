@@ -7,8 +7,10 @@ linear, the white noise is mostly gone and one point is about one thermal time s
 Evidence that survives autocorrelation, all on TRAIN:
 
 * delta-BIC with the effective number of points n_eff = n (1 - rho) / (1 + rho) (rho: lag-1
-  autocorrelation of the 100-s residual of the larger model), each searched nonlinear parameter
-  (time constant, width, threshold, and the probe or pair choice) counted in the penalty;
+  autocorrelation of the 100-s residual of the larger model); the penalty counts every column and
+  every searched parameter: ln(n_eff) for a continuous one (time constant, width, threshold, filter
+  window), ln(number of options) for the probe or pair chosen (none for the declared model's own
+  probe);
 * a Wald test of the new coefficients with Newey-West (HAC) covariance;
 * blocked cross-validation: the training run is cut into contiguous segments; each is predicted by
   the model fitted on the others, on the blocks where the declared inputs lie inside the range the
@@ -210,8 +212,9 @@ class SearchProblem:
         return current
 
     def bic(self, effects: tuple[fx.Effect, ...], n_eff: float) -> float:
-        k = sum(self.columns(e).shape[1] + e.family.n_nonlinear for e in effects)
-        return n_eff * np.log(max(self.ssr(effects), 1e-300)) + k * np.log(n_eff)
+        k = sum(self.columns(e).shape[1] for e in effects)
+        return (n_eff * np.log(max(self.ssr(effects), 1e-300)) + k * np.log(n_eff)
+                + sum(e.family.penalty(n_eff) for e in effects))
 
     def swap(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
         """Replace an added effect by another family (any kind) when that lowers the BIC (effective n
@@ -308,12 +311,12 @@ def _rank(X: np.ndarray) -> int:
 def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...]) -> dict[str, Any]:
     """The three pieces of training evidence for adding ``added`` to ``base`` (giving ``new``)."""
     rank_gain = new.rank - base.rank
-    n_nl = sum(e.family.n_nonlinear for e in added)
     n_eff = new.n_eff
     if rank_gain <= 0 or new.ssr <= 0 or new.ssr >= base.ssr:
         dbic = -np.inf
     else:
-        dbic = n_eff * np.log(base.ssr / new.ssr) - (rank_gain + n_nl) * np.log(n_eff)
+        dbic = (n_eff * np.log(base.ssr / new.ssr) - rank_gain * np.log(n_eff)
+                - sum(e.family.penalty(n_eff) for e in added))
     X = problem.design(new.effects)
     k0 = problem.design(base.effects).shape[1]
     p = hac_wald_p(X[problem.rows], problem.yb[problem.rows], list(range(k0, X.shape[1]))) if dbic > DBIC_MIN else 1.0

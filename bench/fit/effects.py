@@ -123,10 +123,20 @@ class Family:
     grid: tuple[float, ...] = ()
     log_scale: bool = True
     chosen_probe: bool = True      # the probe/pair was searched (False: the declared model's own probe)
+    options: int = 1               # how many probes / pairs it was chosen among
 
     @property
     def label(self) -> str:
         return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in self.fixed) + ")"
+
+    def penalty(self, n_eff: float) -> float:
+        """BIC penalty of the family's searched parameters: ln(n_eff) for the continuous one, ln(number
+        of options) for the probe or pair chosen among the data's (a discrete model choice; none for
+        the declared model's own probe)."""
+        pen = np.log(n_eff) if self.param else 0.0
+        if self.fixed and self.chosen_probe and self.options > 1:
+            pen += np.log(self.options)
+        return float(pen)
 
     @property
     def n_nonlinear(self) -> int:
@@ -343,7 +353,11 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         out.append(Family("cross_channel_temperature", (("probe", other),), cross))
 
     out.append(Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0}))
-    return out
+    counts: dict[tuple, int] = {}
+    for f in out:
+        key = (f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")
+        counts[key] = counts.get(key, 0) + 1
+    return [replace(f, options=counts[(f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")]) for f in out]
 
 
 def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
