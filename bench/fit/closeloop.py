@@ -184,7 +184,13 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
     # slow structure still in that residual reads as flicker)
     r_declared = y_train - design.train @ lstsq(design.train, y_train)
-    floor_start = fit_noise_model([(r_declared, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
+    model_start = fit_noise_model([(r_declared, sample_period(t_tr))])
+    floor_start = model_start.floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
+    # lag-1 autocorrelation of 100-s means of that noise: 1 - ADEV(100 s)^2 / floor^2 (0 for white)
+    full = model_start.floor(t_tr[-1] - t_tr[0])
+    rho = float(np.clip(1.0 - full.get("adev100_dph", 0.0) ** 2 / full["noise_floor_dph"] ** 2, 0.0, 0.95)) \
+        if np.isfinite(full["noise_floor_dph"]) and full["noise_floor_dph"] > 0 else 0.95
+    problem.n_eff_noise = max(10.0, len(problem.yb) * (1 - rho) / (1 + rho))
     stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
 
     def stop_at(effs) -> float:
@@ -265,7 +271,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     else:
         verdict = "no_effect_missing" if at else "unexplained_structure_remains"
 
-    added = _effect_entries(problem, kept_t, steps, fit, diag, t_va, before)
+    added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
                 "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
                 "status": "did not generalise" if np.isfinite(w) else
@@ -310,11 +316,10 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     return report
 
 
-def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va, before) -> list[dict[str, Any]]:
+def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) -> list[dict[str, Any]]:
     """Per kept effect: terms, coefficients, its training evidence with the others present, and the
     in-range validation std100 after adding the effects up to it (in the order chosen)."""
     out = []
-    full = problem.score(kept, with_cv=True)
     step_ev = {lab: s["evidence"] for s in steps if "evidence" in s for lab in s["after_joint_refit"]}
     beta = fit(kept)[0]
     offset = problem.Xb.shape[1]
@@ -333,7 +338,6 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va, be
         out.append({"kind": e.kind, "params": e.params, "terms": cols,
                     "coefficients": {nm: float(beta[start + j]) for j, nm in enumerate(cols)},
                     "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised"})
-    del full
     return out
 
 

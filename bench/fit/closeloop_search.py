@@ -75,6 +75,7 @@ class SearchProblem:
     fine: fx.Inputs                # inputs on the fine grid (10-s means)
     declared_signals_b: np.ndarray  # (n_blocks, s) 100-s means of the declared model's inputs
     families: list[fx.Family]
+    n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
@@ -311,7 +312,9 @@ def _rank(X: np.ndarray) -> int:
 def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...]) -> dict[str, Any]:
     """The three pieces of training evidence for adding ``added`` to ``base`` (giving ``new``)."""
     rank_gain = new.rank - base.rank
-    n_eff = new.n_eff
+    # the residual's own autocorrelation counts structure that other effects still have to explain as
+    # if it were noise; the noise model's autocorrelation of 100-s means bounds n_eff from below
+    n_eff = max(new.n_eff, problem.n_eff_noise)
     if rank_gain <= 0 or new.ssr <= 0 or new.ssr >= base.ssr:
         dbic = -np.inf
     else:

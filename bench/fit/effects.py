@@ -32,7 +32,7 @@ run or its block means (the search runs on block means: the regressors are smoot
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from itertools import combinations
 from typing import Callable
 
