@@ -46,14 +46,36 @@ def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: D
         body.append(f"<h2>Channel {html.escape(ch)}: {html.escape(r['verdict'])}</h2>")
         body.append(f"<p>{html.escape(r['findings'])}</p>")
         rows = [(k, r["before"][k], r["after"][k]) for k in r["before"]]
-        rows.append(("noise floor (ADEV at 100 s)", r["noise_floor_dph"], r["noise_floor_dph"]))
-        body.append(html_table(("metric (deg/h)", "before", "after"), rows, caption="error before / after"))
+        floor = r.get("noise_floor", {})
+        interval = floor.get("interval_dph", [float("nan"), float("nan")])
+        rows.append(("noise floor, std of 100-s means over the validation record", r["noise_floor_dph"],
+                     f"90 % interval {interval[0]:.4g} .. {interval[1]:.4g}"))
+        body.append(html_table(("metric (deg/h; validation_* = in-range part, validation_all_* = whole run as "
+                                "deployed)", "before", "after"), rows, caption="error before / after"))
+        outside = r.get("validation_range", {}).get("outside", {})
+        if outside:
+            body.append(html_table(
+                ("declared input", "training range", "validation range", "below (%)", "above (%)"),
+                [(k, f"{o['train_range'][0]:.4g} .. {o['train_range'][1]:.4g}",
+                  f"{o['validation_range'][0]:.4g} .. {o['validation_range'][1]:.4g}",
+                  100 * o["fraction_below"], 100 * o["fraction_above"]) for k, o in outside.items()],
+                caption=f"validation outside the training range (coverage {100 * r['validation_range']['coverage']:.1f} %)"))
+        if r.get("decisions"):
+            body.append(html_table(("decision", "run used"), list(r["decisions"].items()),
+                                   caption="which decision used which run"))
         if r["effects_added"]:
             body.append(html_table(
-                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "validation std100 (deg/h)"),
+                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "CV gain", "validation std100 (deg/h)"),
                 [(i, e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), ", ".join(e["terms"]),
-                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["validation_std100_dph"])
-                 for i, e in enumerate(r["effects_added"], 1)], caption="effects added, in order"))
+                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["evidence"].get("cv_gain", float("nan")),
+                  e["validation_std100_dph"])
+                 for i, e in enumerate(r["effects_added"], 1)], caption="effects added (chosen on train, confirmed on validation)"))
+        if r.get("effects_not_generalised"):
+            body.append(html_table(
+                ("kind", "parameters", "status", "validation std100 with / without (deg/h)"),
+                [(e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), e["status"],
+                  f"{e['validation_std100_with_dph']:.4g} / {e['validation_std100_without_dph']:.4g}")
+                 for e in r["effects_not_generalised"]], caption="chosen on train, left out"))
         body.append(html_table(("term", "coefficient"), list(r["final_coefficients"].items()),
                                caption="final model coefficients"))
         residuals = r.get("_residuals")
