@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.commands.fitting import fit_channels
+from bench.fit.channels import fit_channels
 from bench.fit.closeloop import MIN_TRAIN_S, close_loop, public
 from bench.fit.effects import duhem_state, relay_state
 from bench.fit.noisefloor import barnes_b1, fit_noise_model
