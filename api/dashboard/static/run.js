@@ -70,6 +70,7 @@ function renderSummary(run) {
       ? el("p.muted", `Pending requests: ${run.pending_requests.map((r) => r.command).join(", ")} (the worker applies them at its next tick)`)
       : null);
   document.getElementById("run-status").textContent = run.status;
+  if (TERMINAL.includes(run.status)) document.getElementById("live").textContent = `run ${run.status}`;
   document.getElementById("run-progress").textContent = String(run.progress_percent);
   for (const [command, spec] of Object.entries(CONTROLS)) {
     document.getElementById(`btn-${command}`).disabled = !spec.allowed.includes(run.status);
@@ -194,11 +195,12 @@ function appendData(columns) {
 function drawPlots() {
   const s = state.series;
   const pick = (prefix) => Object.keys(s.cols).filter((n) => n.startsWith(prefix)).sort();
-  // the controller's working set point moves along a ramp; the target is where the ramp ends
+  // the controller's working set point moves along a ramp while the set-point register does not follow
+  // it: plot the ramping one when the chamber reports it
   const ramp = (s.cols.chamber_ramp_sp || []).some((v) => v !== null && Number.isFinite(v));
   state.plots.chamber.setData(s.t, [
-    ramp ? { name: "set point (ramping)", values: s.cols.chamber_ramp_sp, color: "#1f77b4", dash: [5, 4] } : null,
-    { name: ramp ? "target" : "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [2, 4] },
+    ramp ? { name: "set point (ramping)", values: s.cols.chamber_ramp_sp, color: "#1f77b4", dash: [5, 4] }
+      : { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
     { name: "chamber air", values: s.cols.chamber_pv || [], color: "#d62728" },
   ]);
   const temps = pick("temp_").filter((n) => n !== "temp_point_c");
