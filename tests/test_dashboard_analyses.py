@@ -193,6 +193,9 @@ def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
 
     page.wait_for_function("() => Number(document.getElementById('total-bench').dataset.elapsed) > 600",
                            timeout=60_000)
+    # the gyro's latest 1-s mean in deg/h, as the plot shows it (not "–, –, –")
+    page.wait_for_function("() => /Gyro 1-s mean\\s*-?[0-9][^–]*\\(deg\\/h\\)/.test("
+                           "document.getElementById('latest').textContent)", timeout=30_000)
     e1, r1, _ = sample()
     page.wait_for_function(f"() => Number(document.getElementById('total-bench').dataset.elapsed) > {e1 + 300}",
                            timeout=60_000)

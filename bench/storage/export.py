@@ -36,6 +36,11 @@ from bench.storage.reader import read_frames, second_means
 _TO_DPH = {"deg/s": 3600.0, "rad/s": 180.0 / math.pi * 3600.0, "deg/h": 1.0}
 
 
+def dph_per_unit(units: str) -> float | None:
+    """deg/h per one unit of the gyro's wire output (``deg/s``, ``rad/s``, ``deg/h``); None when unknown."""
+    return _TO_DPH.get(units)
+
+
 def gyro_units(db: Database, run_id: int) -> str:
     with db.session() as s:
         run = s.get(Run, run_id)
