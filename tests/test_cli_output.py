@@ -93,6 +93,7 @@ def test_output_files_follow_the_umask(stored, tmp_path):
     try:
         code, _, err = _cli(["export", train, "--format", "csv", "-o", tmp_path / "run.csv", "--db", url])
         assert code == 0, err
+        assert f"reading run {train}: done in " in err
         code, _, err = _cli(["fit", "static", train, "--json", tmp_path / "fit.json", "--db", url])
         assert code == 0, err
     finally:

@@ -44,7 +44,7 @@ from typing import Any, Optional
 
 import typer
 
-from bench.commands.common import db_option, fail, guarded
+from bench.commands.common import db_option, fail, guarded, step
 
 runs_app = typer.Typer(help="Stored runs: list and show.", no_args_is_help=True)
 HEARTBEAT_S = 1.0
@@ -479,7 +479,8 @@ def export_command(
         from bench.fit.csvio import format_csv, write_csv
         from bench.storage.export import run_dataset
 
-        ds = run_dataset(run, db, recorded_only=recorded_only)
+        with step(f"reading run {run}"):
+            ds = run_dataset(run, db, recorded_only=recorded_only)
         if len(ds) == 0:
             fail(f"run {run}: no frames stored{' inside recorded segments' if recorded_only else ''}; nothing to export")
         if output:
@@ -494,7 +495,8 @@ def export_command(
         if resolution not in ("second", "frame"):
             fail(f"--resolution {resolution!r}: use second or frame")
         if output:
-            export_parquet(db, run, output, resolution=resolution)
+            with step(f"writing run {run} to {output}"):
+                export_parquet(db, run, output, resolution=resolution)
         else:
             with tempfile.TemporaryDirectory() as tmp:
                 path = export_parquet(db, run, Path(tmp) / f"run{run}.parquet", resolution=resolution)
