@@ -9,23 +9,14 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.fit.report import _CSS, _new_figure, _thin, figure_to_img, html_table, plot_adev, plot_residuals
-
-
-def _before_after_vs_time(t: np.ndarray, before: np.ndarray, after: np.ndarray, title: str) -> str:
-    fig, ax = _new_figure(title, "time (h)", "residual (deg/h)")
-    s = _thin(t.size)
-    ax.plot(t[s] / 3600.0, before[s], lw=0.7, label="before (declared model)")
-    ax.plot(t[s] / 3600.0, after[s], lw=0.7, label="after (with effects added)")
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.legend(loc="best", fontsize=8)
-    return figure_to_img(fig, title)
+from bench.fit.report import _CSS, figure_to_img, html_table, plot_adev, plot_before_after, plot_residuals
 
 
 def _section(label: str, data: Dataset, before: np.ndarray, after: np.ndarray, probe: str, window_s: float) -> str:
     t = np.asarray(data.time, float)
     parts = [f"<h3>{html.escape(label)} run</h3>",
-             _before_after_vs_time(t, before, after, f"{label}: residual against time")]
+             plot_before_after(t, before, after, f"{label}: residual against time (100-s means)",
+                               labels=("before (declared model)", "after (with effects added)"))]
     if f"temp_{probe}" in data:
         temp = np.asarray(data[f"temp_{probe}"], float)
         rate = prep.rate_c_per_min(t, temp, window_s)
