@@ -9,7 +9,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.fit.report import _CSS, figure_to_img, html_table, plot_adev, plot_before_after, plot_residuals
+from bench.fit.report import _CSS, html_table, plot_adev, plot_before_after, plot_residuals
 
 
 def _section(label: str, data: Dataset, before: np.ndarray, after: np.ndarray, probe: str, window_s: float) -> str:
