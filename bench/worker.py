@@ -1,5 +1,6 @@
 """The bench worker: takes the runs queued for its bench from the database and executes them with the
-run engine, one at a time, heartbeating while it does.
+run engine, one at a time, heartbeating while it does.  Between runs it executes the analysis jobs
+queued by the API (``bench.jobs``), unless built with ``run_jobs=False``.
 
 Claiming (one run per bench at a time)
 --------------------------------------
@@ -45,6 +46,7 @@ from bench.engine import Devices, Engine, EngineConfig
 from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
 from bench.engine.sqlstore import SqlRunStore
 from bench.errors import BenchError
+from bench.jobs import JobRunner
 from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
@@ -125,7 +127,8 @@ class Worker:
     def __init__(self, db: Database, bench_name: str, config: BenchConfig, devices_factory: DevicesFactory | None,
                  clock: Clock, *, engine_config: EngineConfig | None = None, worker_id: str | None = None,
                  heartbeat_s: float = 1.0, stale_after_s: float = 15.0, poll_s: float = 0.5,
-                 accept_fits: bool = True, writer_options: dict[str, Any] | None = None) -> None:
+                 accept_fits: bool = True, writer_options: dict[str, Any] | None = None,
+                 run_jobs: bool = True) -> None:
         if stale_after_s <= 2 * heartbeat_s:
             raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
         self.db = db
@@ -141,6 +144,10 @@ class Worker:
         self.accept_fits = accept_fits
         self.writer_options = writer_options
         self._stop = threading.Event()
+        # between runs the worker executes analysis jobs (fits, close-the-loop, reports) under their own
+        # leases; run_jobs=False leaves them to `bench worker --analysis`
+        self.jobs = JobRunner(db, worker_id=f"{self.worker_id}/jobs", heartbeat_s=heartbeat_s,
+                              stale_after_s=stale_after_s) if run_jobs else None
         self.current_run: int | None = None
         self.engine: Engine | None = None
         self.runs_done: list[tuple[int, str]] = []
@@ -161,6 +168,11 @@ class Worker:
                 except StorageError as exc:
                     log.warning("worker %s: database problem: %s", self.worker_id, exc)
                     did = None
+                if did is None and self.jobs is not None and not self._stop.is_set():
+                    try:
+                        did = self.jobs.run_one()
+                    except StorageError as exc:
+                        log.warning("worker %s: database problem with the job queue: %s", self.worker_id, exc)
                 if did is None:
                     self._stop.wait(self.poll_s)
         finally:

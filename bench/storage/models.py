@@ -345,11 +345,21 @@ class RunRequest(Base):
     consumed_at: Mapped[dt.datetime | None]
 
 
+JOB_KINDS = ("fit", "close_loop", "fit_report")
+
+
 class Analysis(Base):
-    """A long computation requested through the API (``kind`` "close_loop"), with its result."""
+    """A durable analysis job (``kind`` one of JOB_KINDS) requested through the API, with its result.
+
+    Workers claim jobs like runs (``bench.jobs``): ``worker`` holds the job while ``heartbeat_at`` is
+    fresh; a job whose heartbeat went stale is claimed again and re-run (``attempts`` counts claims).
+    Only the holder may finish it (the finishing ``UPDATE`` is guarded by ``worker``).  ``report_html``
+    is the report page, rendered once by the job; ``fit_id`` is the fit version (its smallest row id)
+    a fit or fit-report job produced or rendered (0004_analysis_jobs)."""
 
     __tablename__ = "analyses"
-    __table_args__ = (CheckConstraint(_in("status", ANALYSIS_STATUSES), name="status"),)
+    __table_args__ = (CheckConstraint(_in("status", ANALYSIS_STATUSES), name="status"),
+                      Index(None, "status", "id"), Index(None, "fit_id"))
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     kind: Mapped[str] = mapped_column(String(32))
@@ -361,3 +371,9 @@ class Analysis(Base):
     requested_by: Mapped[str] = mapped_column(String(64), default="")
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
+    worker: Mapped[str | None] = mapped_column(String(128))
+    heartbeat_at: Mapped[dt.datetime | None]
+    started_at: Mapped[dt.datetime | None]
+    attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    fit_id: Mapped[int | None] = mapped_column(Integer)
+    report_html: Mapped[str | None] = mapped_column(Text)
