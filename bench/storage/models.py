@@ -281,8 +281,14 @@ class Segment(Base):
     labels: Mapped[dict[str, Any] | None]
 
 
+GAP_KINDS = ("link", "corruption", "crash_resume", "suspension")
+
+
 class Gap(Base):
-    """Time with missing frames: link drop, sequence jump, or writer resume after a crash."""
+    """One outage: time with missing frames and how many (``frames_missing``, from the sequence counter
+    and the data rate).  ``reason`` is its kind (GAP_KINDS): ``link`` (the line was down or silent),
+    ``corruption`` (frames rejected on the line, a sequence jump), ``crash_resume`` (the writer
+    resumed the run after a crash), ``suspension`` (the run was suspended)."""
 
     __tablename__ = "gaps"
     __table_args__ = (Index(None, "run_id", "t_from"),)
