@@ -333,6 +333,9 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "percent": progress_doc.get("percent"),
             "remaining_bench_s": progress_doc.get("remaining_bench_s"),
             "frames": frames,
+            # one gap row per outage: their frames and spans add up to what the run lost
+            "frames_lost": int(sum(g.frames_missing or 0 for g in gaps)),
+            "bench_seconds_lost": float(sum(g.t_to - g.t_from for g in gaps)),
             "segments": n_segments,
             "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "duration_s": g.t_to - g.t_from, "reason": g.reason,
                       "frames_missing": g.frames_missing, "after_index": g.after_index} for g in gaps],

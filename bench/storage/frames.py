@@ -259,7 +259,10 @@ class FrameWriter:
         self._closed = False
         self._thread: threading.Thread | None = None
         self._prev_seq: int | None = None
-        self._prev_time: float | None = None
+        self._prev_time: float | None = None       # stored time of the last frame
+        self._prev_host: float | None = None       # its host time
+        self._jitter = 0.0                         # how far host stamps stray from the counted time, s
+        self._by_seq: dict[int, int] = {}          # recent gap rows (by id): frames lost by the counter alone
         self._take_over()
         _LIVE.add(self)
         if autostart:
@@ -354,25 +357,34 @@ class FrameWriter:
 
         Frames lost: the sequence counter's advance minus one, its wraps resolved with the elapsed host
         time and the data rate (``(elapsed * rate - 1 - by_seq) / modulus`` whole turns); without a
-        counter, the elapsed time times the rate.  Stored time: the previous stored time plus the
+        counter, the elapsed time times the rate.  Turns are only counted when the host clock proves them
+        beyond the jitter of its stamps (decaying maximum of host minus counted time): a loss of more
+        than a turn hidden in that jitter is undercounted by whole turns.  Stored time: the previous stored time plus the
         frames' advance over the rate, pulled gently (gain ``TIME_GAIN``) towards the host time: frames
         taken off the line in one read share a host time, but left the device one period apart.  After
         an outage (host time ahead by more than ``REANCHOR_S``) the host time is taken as it is."""
         host = frame.host_time
         prev_t, rate, mod = self._prev_time, self._rate, self.sequence_modulus
+        prev_host, self._prev_host = self._prev_host, host
         if prev_t is None:
             return host
-        elapsed = host - prev_t
+        # elapsed on the host clock between the frames' stamps (a read's frames share one stamp; the
+        # stored times follow the counter, so they would see the read latency as lost frames)
+        elapsed = host - (prev_host if prev_host is not None else prev_t)
         by_time = elapsed * rate - 1 if rate else None
         if mod and self._prev_seq is not None:
             by_seq = (frame.sequence - self._prev_seq - 1) % mod
-            turns = max(0, round((by_time - by_seq) / mod)) if by_time is not None else 0
+            # whole turns of the counter the host clock proves, beyond its own jitter (reads stamp late)
+            slack = 0.0 if self._outage is not None or not rate else max(self._jitter, self.STAMP_JITTER_S) * rate
+            turns = max(0, round((by_time - by_seq - slack) / mod)) if by_time is not None else 0
             missing: int | None = by_seq + mod * turns
         else:
             missing = max(0, round(by_time)) if by_time is not None else None
         if rate:
             predicted = prev_t + ((missing or 0) + 1) / rate
             error = host - predicted
+            if error <= self.REANCHOR_S:
+                self._jitter = max(abs(error), self._jitter * self.JITTER_DECAY)
             t = host if error > self.REANCHOR_S else predicted + self.TIME_GAIN * error
             t = max(t, prev_t + 0.5 / rate)
         else:
@@ -380,16 +392,23 @@ class FrameWriter:
         if self._outage is not None or missing:
             if self._outage is not None:
                 kind, t_from = self._outage.kind, min(self._outage.t_from, prev_t)
-            else:
-                kind, t_from = ("link" if elapsed > max(self.REANCHOR_S, 100 / rate if rate else 0.0)
-                                else "corruption"), prev_t
-            self._queue_row("gaps", {"run_id": self.run_id, "t_from": t_from, "t_to": t, "reason": kind,
-                                     "frames_missing": missing, "after_index": self._next_index - 1})
+            else:        # a second's worth of frames or more: the line was down or silent, not noisy
+                kind, t_from = ("link" if (missing is not None and rate and missing >= rate * self.REANCHOR_S)
+                                or (not rate and elapsed > self.REANCHOR_S) else "corruption"), prev_t
+            row = {"run_id": self.run_id, "t_from": t_from, "t_to": t, "reason": kind, "frames_missing": missing,
+                   "after_index": self._next_index - 1}
+            self._queue_row("gaps", row)
+            if mod and self._prev_seq is not None:
+                self._by_seq[id(row)] = (frame.sequence - self._prev_seq - 1) % mod
+                while len(self._by_seq) > 256:
+                    self._by_seq.pop(next(iter(self._by_seq)))
             self._outage = None
         return t
 
     TIME_GAIN = 0.02            # per frame: the stored clock follows the host clock over ~50 frames
     REANCHOR_S = 1.0            # host time this far ahead of the counted time: an outage, restart from it
+    STAMP_JITTER_S = 1.0        # host stamps may lag by up to a read: shorter silences prove no wrap
+    JITTER_DECAY = 0.9999       # per frame: the host stamps' jitter estimate forgets over ~10^4 frames
     MIN_STEP_S = 2e-6           # without a rate: stored times still strictly increase (1 us resolution)
 
     def record_gap(self, t_from: float, t_to: float, reason: str, frames_missing: int | None = None) -> None:
@@ -406,6 +425,10 @@ class FrameWriter:
                 for row in reversed(self._rows["gaps"]):
                     if row["t_from"] <= t_to and row["t_to"] >= t_from and row["reason"] in ("corruption", "link"):
                         row["reason"] = kind
+                        by_seq, mod, rate = self._by_seq.get(id(row)), self.sequence_modulus, self._rate
+                        if by_seq is not None and mod and rate:     # the outage's own span settles the wraps
+                            span = (max(t_to, row["t_to"]) - min(t_from, row["t_from"])) * rate - 1
+                            row["frames_missing"] = by_seq + mod * max(0, round((span - by_seq) / mod))
                         return
                 if self._prev_time is None or t_to >= self._prev_time:
                     start = t_from if self._outage is None else min(t_from, self._outage.t_from)
