@@ -48,6 +48,7 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
     app.include_router(fits.router)
     app.include_router(meta.router)
     app.include_router(dashboard.router)
+    problems.document_problems(app)
 
     @app.get("/", include_in_schema=False)
     def root() -> RedirectResponse:

@@ -84,4 +84,5 @@ def require(role: str):
             raise Problem(403, "Not allowed", f"this needs the {role} role; your token has the {principal.role} role")
         return principal
 
+    dependency.required_role = role       # read by api.problems.document_problems
     return dependency

@@ -24,8 +24,8 @@ class NoCoefficients(LookupError):
 
 def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
                       version: int | None = None) -> dict[str, Any]:
-    if version is not None and model is None:
-        raise ValueError("version needs model: a version number is per model")
+    """The latest accepted fit of each model (or of ``model``); with ``version``: that version, accepted or
+    not, of ``model`` (or of every model that has it)."""
     f = Fit.__table__.c
     stmt = select(f.id, f.model, f.channel, f.version, f.coefficients, f.result, f.accepted, f.created_at,
                   f.run_ids).where(f.gyro_id == gyro_id)
@@ -39,7 +39,8 @@ def load_coefficients(db: Database, gyro_id: str, *, model: str | None = None,
     if not rows:
         if not known:
             raise NoCoefficients(f"no gyro {gyro_id!r} is stored", False)
-        what = f"{model} version {version}" if version else (f"accepted {model} fit" if model else "accepted fit")
+        what = (f"{model or 'model'} version {version}" if version else
+                (f"accepted {model} fit" if model else "accepted fit"))
         raise NoCoefficients(f"gyro {gyro_id!r} has no {what}", True)
     models: dict[str, dict[str, Any]] = {}
     for r in rows:

@@ -99,3 +99,105 @@ def install(app: FastAPI) -> None:
         log.exception("internal error on %s %s", request.method, request.url.path)
         return problem_response(request, 500, "Internal error",
                                 f"the server failed on this request ({type(exc).__name__}); it is logged")
+
+
+# ------------------------------------------------------------------------------ OpenAPI documentation
+PROBLEM_SCHEMA = {
+    "type": "object", "title": "Problem", "required": ["type", "title", "status", "detail", "instance"],
+    "description": "RFC 9457 problem details: what was wrong and where",
+    "properties": {
+        "type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"},
+        "detail": {"type": "string"}, "instance": {"type": "string"},
+        "errors": {"type": "array", "description": "one entry per invalid input",
+                   "items": {"type": "object", "required": ["where", "problem"],
+                             "properties": {"where": {"type": "string"}, "problem": {"type": "string"}}}},
+    },
+    "additionalProperties": True,
+}
+PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
+_DESCRIPTIONS = {400: "The body is not valid JSON", 401: "No token, or an unknown token",
+                 403: "The token's role is not enough",
+                 404: "No such resource", 405: "Method not allowed", 409: "Not possible in the resource's current "
+                 "state", 413: "Too much data selected", 422: "Invalid input: which field and why",
+                 503: "Database unavailable (retry later)"}
+
+
+def problem_codes(*codes: int) -> dict[str, Any]:
+    """``openapi_extra`` of a route that answers these problem codes besides the ones found from its
+    signature (see ``document_problems``)."""
+    return {"x-problem-codes": list(codes)}
+
+
+def _dependency_calls(dependant) -> list[Any]:
+    out = []
+    for d in dependant.dependencies:
+        out.append(d.call)
+        out.extend(_dependency_calls(d))
+    return out
+
+
+def _route_codes(route) -> set[int]:
+    """Problem codes a route answers, from its signature: a token (401; 403 above viewer), inputs (422),
+    path parameters (404), the database (503)."""
+    from api.deps import get_db
+
+    codes: set[int] = set()
+    calls = _dependency_calls(route.dependant)
+    roles = [getattr(c, "required_role", None) for c in calls]
+    roles = [r for r in roles if r]
+    if roles:
+        codes.add(401)
+        if any(r != "viewer" for r in roles):
+            codes.add(403)
+    d = route.dependant
+    if d.path_params:
+        codes |= {404, 422}
+    if d.query_params or d.body_params or d.header_params:
+        codes.add(422)
+    if d.body_params:
+        codes.add(400)             # a body that is not JSON at all
+    if get_db in calls:
+        codes.add(503)
+    return codes
+
+
+def _api_routes(routes):
+    """Every APIRoute, also inside included routers (included here without an extra prefix)."""
+    from fastapi.routing import APIRoute
+
+    for r in routes:
+        if isinstance(r, APIRoute):
+            yield r
+        elif getattr(r, "original_router", None) is not None:
+            yield from _api_routes(r.original_router.routes)
+
+
+def document_problems(app: FastAPI) -> None:
+    """Make the OpenAPI document tell the truth about errors: every problem status a route answers,
+    each as ``application/problem+json`` with the Problem schema (FastAPI's default 422 shape is
+    replaced: errors here are problem documents)."""
+    from fastapi.openapi.utils import get_openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema:
+            return app.openapi_schema
+        doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+        doc.setdefault("components", {}).setdefault("schemas", {})["Problem"] = PROBLEM_SCHEMA
+        for schema_name in ("HTTPValidationError", "ValidationError"):
+            doc["components"]["schemas"].pop(schema_name, None)
+        for route in _api_routes(app.routes):
+            if not route.include_in_schema:
+                continue
+            for method in route.methods:
+                op = doc["paths"].get(route.path_format, {}).get(method.lower())
+                if op is None:
+                    continue
+                codes = _route_codes(route) | set(op.pop("x-problem-codes", []))
+                responses = op.setdefault("responses", {})
+                for code in sorted(codes):
+                    responses[str(code)] = {"description": _DESCRIPTIONS.get(code, "Problem"),
+                                            "content": {MEDIA_TYPE: {"schema": PROBLEM_REF}}}
+        app.openapi_schema = doc
+        return doc
+
+    app.openapi = openapi

@@ -3,10 +3,23 @@ ranges, so a typo is an error rather than a silently ignored setting."""
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from fastapi import Path
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from bench.fit.formula import MAX_FORMULA_CHARS          # one limit for the CLI and the API
+from procedures import PROCEDURE_MODULES
+
+
+MAX_ROW_ID = 2**53 - 1    # ids beyond are refused (422), never looked up (exact in JSON numbers; 64-bit keys hold it)
+RowId = Annotated[int, Path(ge=1, le=MAX_ROW_ID, description="a stored id (1 .. 2^53-1)")]
+BodyRowId = Annotated[int, Field(ge=1, le=MAX_ROW_ID)]
+GyroPath = Annotated[str, Path(pattern=r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$", description="gyro ID")]
+ProcedureName = Literal[PROCEDURE_MODULES]
+
+# a registered model name or a formula (bench.fit.formula grammar and limits)
+MODEL_FORMAT = "gyrobench-model"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
 GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
 
@@ -14,9 +27,23 @@ GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 lett
 class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_for_numbers(cls, data: Any) -> Any:
+        """true/false is not a number: refused for every field that is not a flag (JSON 2.0 stays 2)."""
+        if isinstance(data, dict):
+            for name, value in data.items():
+                field = cls.model_fields.get(name)
+                if field is None or field.annotation is bool or name == "params":
+                    continue
+                items = value if isinstance(value, list) else [value]
+                if any(isinstance(v, bool) for v in items):
+                    raise ValueError(f"{name}: true/false given where a number or text is needed")
+        return data
+
 
 class RunCreate(_Body):
-    procedure: str = Field(..., min_length=1, max_length=64, description="a name from GET /procedures")
+    procedure: ProcedureName = Field(..., description="a name from GET /procedures")
     gyro_id: str = GyroId
     bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
     params: dict[str, Any] = Field(default_factory=dict,
@@ -34,15 +61,20 @@ class RunCreate(_Body):
 
 
 class FitCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=300,
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, json_schema_extra={"format": MODEL_FORMAT},
                        description="a model name (static, dynamic, patent37, hrg, fog_stepwise...) or a formula")
-    run_ids: list[int] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
-    validation_run_ids: list[int] = Field(default_factory=list, max_length=20,
+    run_ids: list[BodyRowId] = Field(..., min_length=1, max_length=20, description="training runs (same gyro)")
+    validation_run_ids: list[BodyRowId] = Field(default_factory=list, max_length=20,
                                           description="held-out runs the report evaluates on")
     gyro_id: str | None = Field(None, pattern=ID_PATTERN, description="defaults to the runs' gyro")
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
     latitude_deg: float | None = Field(None, ge=-90, le=90)
     accept: bool = Field(False, description="make this version the gyro's accepted coefficients (admin only)")
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        return _model_name(value)
 
     @field_validator("run_ids", "validation_run_ids")
     @classmethod
@@ -55,12 +87,24 @@ class FitCreate(_Body):
         return value
 
 
+def _model_name(value: str) -> str:
+    from bench.fit.catalog import check_model_name
+
+    return check_model_name(value)
+
+
 class CloseLoopCreate(_Body):
-    model: str = Field(..., min_length=1, max_length=300, description="declared model: a linear model or a formula")
-    train_run_id: int = Field(..., ge=1)
-    validation_run_id: int = Field(..., ge=1)
+    model: str = Field(..., min_length=1, max_length=MAX_FORMULA_CHARS, json_schema_extra={"format": MODEL_FORMAT},
+                       description="declared model: a linear model or a formula")
+    train_run_id: BodyRowId
+    validation_run_id: BodyRowId
     channels: list[Literal["x", "y", "z"]] | None = Field(None, min_length=1, max_length=3)
     latitude_deg: float | None = Field(None, ge=-90, le=90)
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        return _model_name(value)
 
 
 DataStream = Literal["seconds", "frames", "probes", "telemetry"]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from bench.errors import BenchError
-from bench.fit.base import Dataset, FitResult
+from bench.fit.base import Dataset, FitResult, channel_probe_map
 from bench.storage.db import Database
 from bench.storage.models import Fit, Run
 
@@ -80,7 +80,7 @@ def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | No
     meta["run_id"] = ",".join(str(r) for r in run_ids)
     merged_map: dict[str, str] = {}
     for rid, d in zip(run_ids, datasets):
-        for ch, probe in (d.meta.get("channel_probes") or {}).items():
+        for ch, probe in channel_probe_map(d).items():
             if merged_map.setdefault(ch, probe) != probe:
                 raise AnalysisInputError(f"runs disagree on channel probes: channel {ch}: probe {probe} in run "
                                          f"{rid}, {merged_map[ch]} in an earlier run of {run_ids}")

@@ -81,6 +81,8 @@ class GyroConfig(_Strict):
     # temperature (S000 eq 4 uses t_i for channel i); recorded with every run, exported as the CSV
     # line ``# channel_probes: x=t1,y=t2,z=t3``; fits use it as each channel's default probe
     channel_probes: dict[str, str] = Field(default_factory=dict)
+    # measurement range, deg/s (KVH DSP-1750: +-490); imported rates beyond it are refused
+    range_dps: float = Field(490.0, gt=0, le=1e6)
 
 
 class ProbeConfig(_Strict):

@@ -21,7 +21,8 @@ from typing import Literal
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Orient, Plan, Record
-from procedures.common import StableParams, _Params, frange, hold_at
+from procedures.common import (MAX_POINTS, CelsiusPoints, Count, Hours, Minutes, ModelList, StableParams, _Params,
+                               frange, hold_at)
 
 NAME = "eight_position"
 DESCRIPTION = ("S000 3.2 static eight-position test: -40..+60 C every 10 C, 4 h soak, 1 min in each of "
@@ -30,14 +31,14 @@ EIGHT_POSITIONS = ["ESD", "USE", "WSU", "DSW", "WND", "UNW", "ENU", "DNE"]
 
 
 class Params(_Params):
-    points_c: list[float] = Field(default_factory=lambda: frange(-40.0, 60.0, 10.0), min_length=1)
-    soak_h: float = Field(4.0, gt=0)
+    points_c: CelsiusPoints = Field(default_factory=lambda: frange(-40.0, 60.0, 10.0))
+    soak_h: Hours = 4.0
     settle: Literal["soak", "stable"] = "soak"
     stable: StableParams = StableParams()
-    positions: list[str] = Field(default_factory=lambda: list(EIGHT_POSITIONS), min_length=1)
-    record_min: float = Field(1.0, gt=0)
-    repetitions: int = Field(1, ge=1)
-    fit_models: list[str] = Field(default_factory=lambda: ["static"])
+    positions: list[str] = Field(default_factory=lambda: list(EIGHT_POSITIONS), min_length=1, max_length=MAX_POINTS)
+    record_min: Minutes = 1.0
+    repetitions: Count = Field(1, ge=1, le=100)
+    fit_models: ModelList = Field(default_factory=lambda: ["static"])
 
 
 def build(params: Params | None = None) -> Plan:

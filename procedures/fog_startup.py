@@ -17,7 +17,7 @@ from typing import Literal
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Orient, Plan, Record
-from procedures.common import StableParams, _Params, hold_at
+from procedures.common import CelsiusPoints, Hours, Minutes, ModelList, StableParams, _Params, hold_at
 
 NAME = "fog_startup"
 DESCRIPTION = ("S004 FOG start-up: at -40, -25, -10, 5, 20, 35, 45, 60 C soak until the IMU is at "
@@ -25,14 +25,13 @@ DESCRIPTION = ("S004 FOG start-up: at -40, -25, -10, 5, 20, 35, 45, 60 C soak un
 
 
 class Params(_Params):
-    points_c: list[float] = Field(default_factory=lambda: [-40.0, -25.0, -10.0, 5.0, 20.0, 35.0, 45.0, 60.0],
-                                  min_length=1)
+    points_c: CelsiusPoints = Field(default_factory=lambda: [-40.0, -25.0, -10.0, 5.0, 20.0, 35.0, 45.0, 60.0])
     orientations: list[str] = Field(default_factory=lambda: ["ENU", "NWU"], min_length=1, max_length=2)
     settle: Literal["soak", "stable"] = "stable"
-    soak_h: float = Field(4.0, gt=0)
+    soak_h: Hours = 4.0
     stable: StableParams = StableParams(probe_tol_c=1.0)
-    record_min: float = Field(120.0, gt=0)
-    fit_models: list[str] = Field(default_factory=lambda: ["fog_stepwise", "fog_delaunay"])
+    record_min: Minutes = 120.0
+    fit_models: ModelList = Field(default_factory=lambda: ["fog_stepwise", "fog_delaunay"])
 
 
 def build(params: Params | None = None) -> Plan:

@@ -17,7 +17,8 @@ from __future__ import annotations
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Plan, Ramp, Record, SetChamber, Soak, WaitStable
-from procedures.common import _Params, frange
+from procedures.common import (Celsius, CelsiusPoints, Flag, Hours, Minutes, ModelList, RampRate, Tolerance, _Params,
+                               frange)
 
 NAME = "hrg_calibration"
 DESCRIPTION = ("S002 HRG: frequency-temperature points -40..50 C every 10 C with 5 h soak (DS18B20 "
@@ -25,20 +26,20 @@ DESCRIPTION = ("S002 HRG: frequency-temperature points -40..50 C every 10 C with
 
 
 class Params(_Params):
-    points_c: list[float] = Field(default_factory=lambda: frange(-40.0, 50.0, 10.0), min_length=1)
-    soak_h: float = Field(5.0, gt=0)
-    record_min: float = Field(60.0, gt=0)
-    include_dynamic: bool = True
-    cold_c: float = -40.0
-    cool_tol_c: float = Field(1.0, gt=0)
-    cool_expected_h: float = Field(2.0, gt=0)
-    cool_timeout_h: float = Field(6.0, gt=0)
-    cold_soak_h: float = Field(5.0, gt=0)
-    rate_c_per_min: float = Field(1.0, gt=0)
-    end_c: float = 50.0
-    probe_tol_c: float = Field(0.25, gt=0)
-    until_timeout_h: float = Field(3.0, gt=0)
-    fit_models: list[str] = Field(default_factory=lambda: ["hrg_reverse", "hrg"])
+    points_c: CelsiusPoints = Field(default_factory=lambda: frange(-40.0, 50.0, 10.0))
+    soak_h: Hours = 5.0
+    record_min: Minutes = 60.0
+    include_dynamic: Flag = True
+    cold_c: Celsius = -40.0
+    cool_tol_c: Tolerance = 1.0
+    cool_expected_h: Hours = 2.0
+    cool_timeout_h: Hours = 6.0
+    cold_soak_h: Hours = 5.0
+    rate_c_per_min: RampRate = 1.0
+    end_c: Celsius = 50.0
+    probe_tol_c: Tolerance = 0.25
+    until_timeout_h: Hours = 3.0
+    fit_models: ModelList = Field(default_factory=lambda: ["hrg_reverse", "hrg"])
 
 
 def build(params: Params | None = None) -> Plan:

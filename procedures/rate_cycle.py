@@ -21,7 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bench.engine import Fit, GyroPower, Plan, Ramp, SetChamber, Soak, WeakCorrelation, part_correlation
 from bench.errors import PlanError
-from procedures.common import _Params, frange
+from procedures.common import (MAX_POINTS, Celsius, Flag, Hours, Minutes, MinutesOrZero, ModelList, RampRate, Real,
+                               _Params, frange)
 
 NAME = "rate_cycle"
 DESCRIPTION = ("S001 modelling run: -20..+50 C temperature cycle then cycles at +-2, 1, 0.5, 0.2, 0.1 C/min "
@@ -31,9 +32,9 @@ DESCRIPTION = ("S001 modelling run: -20..+50 C temperature cycle then cycles at 
 
 class Leg(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    target_c: float
-    rate_c_per_min: float = Field(gt=0)
-    hold_min: float = Field(ge=0)
+    target_c: Celsius
+    rate_c_per_min: RampRate
+    hold_min: MinutesOrZero
 
 
 def _default_validation() -> list[Leg]:
@@ -43,17 +44,18 @@ def _default_validation() -> list[Leg]:
 
 
 class Params(_Params):
-    low_c: float = -20.0
-    high_c: float = 50.0
-    initial_soak_h: float = Field(2.0, gt=0)
-    cycle_step_c: float = Field(10.0, gt=0)
-    cycle_hold_min: float = Field(60.0, gt=0)
-    rates_c_per_min: list[float] = Field(default_factory=lambda: [2.0, 1.0, 0.5, 0.2, 0.1], min_length=1)
-    dwell_min: float = Field(30.0, ge=0)
-    include_validation: bool = True
-    validation: list[Leg] = Field(default_factory=_default_validation)
-    max_abs_r: float = Field(0.4, gt=0, le=1)
-    fit_models: list[str] = Field(default_factory=lambda: ["patent37"])
+    low_c: Celsius = -20.0
+    high_c: Celsius = 50.0
+    initial_soak_h: Hours = 2.0
+    cycle_step_c: Real = Field(10.0, ge=0.1, le=300.0)
+    cycle_hold_min: Minutes = 60.0
+    rates_c_per_min: list[RampRate] = Field(default_factory=lambda: [2.0, 1.0, 0.5, 0.2, 0.1], min_length=1,
+                                            max_length=MAX_POINTS)
+    dwell_min: MinutesOrZero = 30.0
+    include_validation: Flag = True
+    validation: list[Leg] = Field(default_factory=_default_validation, max_length=MAX_POINTS)
+    max_abs_r: Real = Field(0.4, gt=0, le=1)
+    fit_models: ModelList = Field(default_factory=lambda: ["patent37"])
 
 
 def _modelling(p: Params) -> list:

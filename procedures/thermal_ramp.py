@@ -25,7 +25,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Orient, Plan, Ramp, SetChamber, Soak
-from procedures.common import _Params
+from procedures.common import Celsius, Hours, Minutes, ModelList, RampRate, _Params
 
 NAME = "thermal_ramp"
 DESCRIPTION = ("S000 3.3 dynamic test, gyro as mounted (S000 mounts it NUE): soak +40 C, power on, 10 min, "
@@ -33,14 +33,14 @@ DESCRIPTION = ("S000 3.3 dynamic test, gyro as mounted (S000 mounts it NUE): soa
 
 
 class Params(_Params):
-    orientation: str | None = None       # None: leave the table (gyro as mounted); S000: "NUE"
-    start_c: float = 40.0
-    soak_h: float = Field(4.0, gt=0)
-    warmup_min: float = Field(10.0, gt=0)
-    rate_c_per_min: float = Field(1.0, gt=0)
-    end_c: float = -30.0
-    final_hold_min: float = Field(20.0, gt=0)
-    fit_models: list[str] = Field(default_factory=lambda: ["dynamic"])
+    orientation: str | None = Field(None, max_length=3)   # None: leave the table (gyro as mounted); S000: "NUE"
+    start_c: Celsius = 40.0
+    soak_h: Hours = 4.0
+    warmup_min: Minutes = 10.0
+    rate_c_per_min: RampRate = 1.0
+    end_c: Celsius = -30.0
+    final_hold_min: Minutes = 20.0
+    fit_models: ModelList = Field(default_factory=lambda: ["dynamic"])
 
 
 def build(params: Params | None = None) -> Plan:

@@ -87,19 +87,51 @@ def test_validation_messages(env):
     assert "body.params.soak_h" in doc["detail"] and "greater than 0" in doc["detail"]
     doc = is_problem(c.post("/runs", json=run_body(procedure="nope"), headers=OPERATOR), 422)
     assert "thermal_ramp" in doc["detail"]
-    doc = is_problem(c.post("/runs", json=run_body(bench="other"), headers=OPERATOR), 422)
+    doc = is_problem(c.post("/runs", json=run_body(bench="other"), headers=OPERATOR), 404)
     assert "bench1" in doc["detail"]
     doc = is_problem(c.post("/runs", json=run_body(gyro_id="bad id!"), headers=OPERATOR), 422)
     assert doc["errors"][0]["where"] == "body.gyro_id"
     doc = is_problem(c.post("/runs", json=run_body(start_at="2030-01-01T22:00:00"), headers=OPERATOR), 422)
     assert "time zone" in doc["detail"]
     # a plan the bench refuses (chamber limits) is refused before anything is queued
-    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "end_c": -200.0}), headers=OPERATOR), 422)
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "end_c": -90.0}), headers=OPERATOR), 422)
     assert doc["title"] == "Plan refused"
     assert c.get("/runs", headers=VIEWER).json()["total"] == 0
     is_problem(c.get("/runs/abc", headers=VIEWER), 422)
     is_problem(c.get("/runs?limit=0", headers=VIEWER), 422)
     is_problem(c.get("/nowhere", headers=VIEWER), 404)
+
+
+def test_bad_parameters_are_refused_when_queued(env):
+    """Issue drills: absurd durations and ramp rates, a bool for a number, a model name that is a path,
+    an id beyond the database's integers: 422 with the parameter named, nothing queued."""
+    db, c = env
+    for params, where in (({"soak_h": 1e9}, "soak_h"), ({"rate_c_per_min": 1e-12}, "rate_c_per_min"),
+                          ({"soak_h": True}, "soak_h"), ({"fit_models": ["../../etc/passwd"]}, "fit_models.0"),
+                          ({"fit_models": ["t1^99999"]}, "fit_models.0"),
+                          ({"fit_models": ["(" * 3000 + "t1" + ")" * 3000]}, "fit_models.0")):
+        doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, **params}), headers=OPERATOR), 422)
+        assert doc["errors"][0]["where"] == f"body.params.{where}", doc
+    # every parameter within its bounds, but the whole plan longer than 30 days of bench time
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "soak_h": 719.0, "warmup_min": 43000.0}),
+                            headers=OPERATOR), 422)
+    assert "30 days" in doc["detail"]
+    # faster than the chamber can ramp: the bench config's limit
+    doc = is_problem(c.post("/runs", json=run_body(params={**SHORT_RAMP, "rate_c_per_min": 50.0}), headers=OPERATOR),
+                     422)
+    assert "max_ramp_c_per_min" in doc["detail"]
+    assert c.get("/runs", headers=VIEWER).json()["total"] == 0
+    for path in ("/runs/7251189334503670677504", "/runs/9223372036854775808/events", "/fits/99999999999999999999999",
+                 "/close-loop/99999999999999999999999"):
+        is_problem(c.get(path, headers=VIEWER), 422)
+    is_problem(c.get("/runs/9223372036854775807", headers=VIEWER), 422)
+    is_problem(c.get("/runs/9007199254740991", headers=VIEWER), 404)
+    for body in ({"model": "t1^99999", "run_ids": [1]}, {"model": "(" * 20 + "t1" + ")" * 20, "run_ids": [1]},
+                 {"model": "static", "run_ids": [2**70]}, {"model": "static", "run_ids": [True]},
+                 {"model": "static", "run_ids": [1], "latitude_deg": True}):
+        doc = is_problem(c.post("/fits", json=body, headers=OPERATOR), 422)
+        assert doc["errors"][0]["where"].startswith("body"), doc
+        assert any(k in doc["detail"] for k in ("model", "run_ids", "latitude_deg")), doc
 
 
 def test_queue_schedule_cancel_and_control_requests(env):
@@ -142,7 +174,7 @@ def test_procedures_and_benches(env):
     ramp = procs["thermal_ramp"]
     assert ramp["defaults"]["end_c"] == -30.0 and "soak_h" in ramp["parameters_schema"]["properties"]
     assert c.get("/procedures/thermal_ramp", headers=VIEWER).json()["name"] == "thermal_ramp"
-    is_problem(c.get("/procedures/none", headers=VIEWER), 404)
+    is_problem(c.get("/procedures/none", headers=VIEWER), 422)       # the schema lists the procedures
     benches = c.get("/benches", headers=VIEWER).json()["benches"]
     assert benches[0]["name"] == "bench1" and benches[0]["online"] is False and benches[0]["state"] == "offline"
     assert set(benches[0]["devices"]) == {"chamber", "turntable", "gyro", "probes", "psu"}
@@ -207,7 +239,7 @@ def test_import_fit_accept_coefficients(env):
     export = c.get(f"/fits/{fit['id']}/export", headers=VIEWER).json()
     assert export["schema"] == "gyrobench.fit.export" and len(export["models"]) == 3
     is_problem(c.get("/fits/99999", headers=VIEWER), 404)
-    is_problem(c.post("/fits", json={**body, "run_ids": [99999]}, headers=OPERATOR), 422)
+    is_problem(c.post("/fits", json={**body, "run_ids": [99999]}, headers=OPERATOR), 404)
     is_problem(c.post("/fits", json={**body, "model": "t1 +"}, headers=OPERATOR), 422)
     # what only the data can tell ends the job failed, with the reason
     bad = c.post("/fits", json={**body, "model": "t1 + t9"}, headers=OPERATOR).json()
@@ -229,7 +261,7 @@ def test_close_loop_job(env):
     train = import_dataset(db, synthetic_dataset(seed=3), "G-200")
     val = import_dataset(db, synthetic_dataset(seed=4), "G-200")
     body = {"model": "t1", "train_run_id": train, "validation_run_id": val}
-    is_problem(c.post("/close-loop", json={**body, "validation_run_id": train}, headers=OPERATOR), 422)
+    is_problem(c.post("/close-loop", json={**body, "validation_run_id": train}, headers=OPERATOR), 409)
     r = c.post("/close-loop", json=body, headers=OPERATOR)
     assert r.status_code == 202
     aid = r.json()["id"]

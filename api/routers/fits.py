@@ -16,8 +16,8 @@ from sqlalchemy import and_, select
 from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
-from api.problems import Problem
-from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate
+from api.problems import Problem, problem_codes
+from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate, GyroPath, RowId
 from api.views import iso
 from bench.analysis import fit_results
 from bench.errors import BenchError
@@ -58,11 +58,12 @@ def _group_rows(session, fit_id: int) -> list[Fit]:
 
 # ------------------------------------------------------------------------------ coefficients
 @router.get("/gyros/{gyro_id}/coefficients", summary="A gyro's coefficients: the latest accepted fit per model")
-async def coefficients(gyro_id: str, request: Request, db: Database = Depends(get_db),
+async def coefficients(gyro_id: GyroPath, request: Request, db: Database = Depends(get_db),
                  _: Principal = Depends(require("viewer")),
                  model: str | None = Query(None, min_length=1, max_length=300),
                  version: int | None = Query(None, ge=1, le=1_000_000,
-                                             description="a specific version (needs model); accepted or not")):
+                                             description="a specific version (of model, or of every model "
+                                                         "that has it); accepted or not")):
     if not _valid_id(gyro_id):
         raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
     try:
@@ -111,7 +112,7 @@ def _valid_id(text: str) -> bool:
 
 
 @router.get("/gyros/{gyro_id}/fits", summary="Every fit version of a gyro")
-def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+def gyro_fits(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
               model: str | None = Query(None, min_length=1, max_length=300)):
     with db.session() as s:
         if s.get(Gyro, gyro_id) is None:
@@ -124,7 +125,8 @@ def gyro_fits(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depen
 
 
 # -------------------------------------------------------------------------------------- fits
-@router.post("/fits", status_code=202, summary="Fit a model on stored runs (a job: 202 with the job's URL)")
+@router.post("/fits", status_code=202, summary="Fit a model on stored runs (a job: 202 with the job's URL)",
+             openapi_extra=problem_codes(404, 409))
 def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
     """Queue a job that fits ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
     ``validation_run_ids`` too), stores it as the next version of the model for the gyro and renders its
@@ -138,7 +140,7 @@ def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal =
     with db.session() as s:
         gyros = _gyros_of(s, [*body.run_ids, *body.validation_run_ids])
         if len(gyros) > 1:
-            raise Problem(422, "Runs of different gyros", f"runs {body.run_ids + body.validation_run_ids} belong "
+            raise Problem(409, "Runs of different gyros", f"runs {body.run_ids + body.validation_run_ids} belong "
                           f"to gyros {sorted(map(str, gyros))}")
         job = enqueue(s, "fit", body.model_dump(mode="json"), requested_by=who.name,
                       gyro_id=body.gyro_id or next(iter(gyros), None))
@@ -165,7 +167,7 @@ def _gyros_of(session, run_ids: list[int]) -> set[str | None]:
     for rid in run_ids:
         run = session.get(Run, rid)
         if run is None:
-            raise Problem(422, "Unknown run", f"run {rid} does not exist")
+            raise Problem(404, "Unknown run", f"run {rid} does not exist")
         gyros.add(run.gyro_id)
     return gyros
 
@@ -191,7 +193,7 @@ def _accepted(doc: dict[str, Any]) -> JSONResponse:
 
 
 @router.get("/jobs/{job_id}", summary="An analysis job (fit, close-the-loop, report): status and result")
-def get_job(job_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_job(job_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         a = s.get(Analysis, job_id)
         if a is None:
@@ -200,13 +202,13 @@ def get_job(job_id: int, db: Database = Depends(get_db), _: Principal = Depends(
 
 
 @router.get("/fits/{fit_id}", summary="One fit version (all its channels)")
-def get_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         return _group_doc(_group_rows(s, fit_id))
 
 
 @router.post("/fits/{fit_id}/accept", summary="Make this version the gyro's accepted coefficients for its model")
-def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
+def accept_fit(fit_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("admin"))):
     with db.session() as s:
         rows = _group_rows(s, fit_id)
         queries.accept_fits(s, rows[0].gyro_id, rows[0].model, rows[0].version)
@@ -216,8 +218,9 @@ def accept_fit(fit_id: int, db: Database = Depends(get_db), who: Principal = Dep
     return doc
 
 
-@router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version")
-def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+@router.get("/fits/{fit_id}/export", summary="Firmware export document (gyrobench.fit.export) of this version",
+            openapi_extra=problem_codes(409))
+def export_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     from bench.fit.export import build_export
 
     with db.session() as s:
@@ -228,13 +231,13 @@ def export_fit(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
         return build_export(rows[0].gyro_id, fit_results(rows), gyro_type=gyro_type,
                             source={"fit_id": fit_id, "run_ids": rows[0].run_ids, "version": rows[0].version})
     except BenchError as exc:
-        raise Problem(422, "Cannot export", str(exc)) from None
+        raise Problem(409, "Cannot export", str(exc)) from None
 
 
 @router.get("/fits/{fit_id}/report", summary="HTML report of this version on its training / validation runs",
-            response_class=HTMLResponse,
+            response_class=HTMLResponse, openapi_extra=problem_codes(409),
             responses={202: {"description": "not rendered yet: the rendering job (its URL) is queued or running"}})
-def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def fit_report(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     """The page rendered once by the fit's job.  A fit stored without one (by a run's Fit step) gets a
     rendering job on the first request: 202 with the job's URL until it is done."""
     with db.session() as s:
@@ -247,7 +250,7 @@ def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
         pending = s.scalars(select(Analysis).where(Analysis.fit_id == group_id, Analysis.kind == "fit_report")
                             .order_by(Analysis.id.desc()).limit(1)).first()
         if pending is not None and pending.status == "failed":
-            raise Problem(422, "Cannot render the report", pending.error or "the rendering job failed")
+            raise Problem(409, "Cannot render the report", pending.error or "the rendering job failed")
         if pending is None:
             pending = enqueue(s, "fit_report", {"fit_id": group_id}, requested_by="report", fit_id=group_id)
         return _accepted(_job_doc(pending))
@@ -255,11 +258,13 @@ def fit_report(fit_id: int, db: Database = Depends(get_db), _: Principal = Depen
 
 # -------------------------------------------------------------------------------- close loop
 @router.post("/close-loop", status_code=202,
-             summary="Close the loop on a training and a held-out run (a job: 202 with its URL)")
+             summary="Close the loop on a training and a held-out run (a job: 202 with its URL)",
+             openapi_extra=problem_codes(404, 409))
 def create_close_loop(body: CloseLoopCreate, db: Database = Depends(get_db),
                       who: Principal = Depends(require("operator"))):
     if body.train_run_id == body.validation_run_id:
-        raise Problem(422, "Invalid input", "the validation run must differ from the training run")
+        raise Problem(409, "Same run twice", "the validation run must be another run than the training run (a "
+                      "held-out run)")
     _check_model(body.model)
     with db.session() as s:
         gyros = _gyros_of(s, [body.train_run_id, body.validation_run_id])
@@ -270,7 +275,7 @@ def create_close_loop(body: CloseLoopCreate, db: Database = Depends(get_db),
 
 
 @router.get("/close-loop/{analysis_id}", summary="Close-the-loop analysis: status and report")
-def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+def get_close_loop(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:
@@ -279,8 +284,9 @@ def get_close_loop(analysis_id: int, db: Database = Depends(get_db), _: Principa
 
 
 @router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
-            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation")
-def close_loop_report(analysis_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+            summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation",
+            openapi_extra=problem_codes(409))
+def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
     with db.session() as s:
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:

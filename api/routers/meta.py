@@ -1,15 +1,16 @@
 """Procedures (parameter schema and defaults), benches (devices and live status) and health."""
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Depends, Path, Request, Response
 from sqlalchemy import select, text
 
 import procedures
 from api.auth import Principal, require
 from api.deps import get_db, stale_after_s
-from api.problems import Problem
+from api.problems import Problem, problem_codes
+from api.schemas import ID_PATTERN, ProcedureName
 from api.views import bench_doc
 from bench.storage.db import Database
 from bench.storage.models import Bench
@@ -30,7 +31,7 @@ def list_procedures(_: Principal = Depends(require("viewer"))) -> dict[str, Any]
 
 
 @router.get("/procedures/{name}", tags=["procedures"], summary="One procedure")
-def get_procedure(name: str, _: Principal = Depends(require("viewer"))) -> dict[str, Any]:
+def get_procedure(name: ProcedureName, _: Principal = Depends(require("viewer"))) -> dict[str, Any]:
     if name not in procedures.PROCEDURE_MODULES:
         raise Problem(404, "Unknown procedure", f"procedure {name!r} does not exist; known: "
                       f"{', '.join(procedures.PROCEDURE_MODULES)}")
@@ -46,7 +47,7 @@ def list_benches(request: Request, db: Database = Depends(get_db),
 
 
 @router.get("/benches/{name}", tags=["benches"], summary="One bench")
-def get_bench(name: str, request: Request, db: Database = Depends(get_db),
+def get_bench(name: Annotated[str, Path(pattern=ID_PATTERN)], request: Request, db: Database = Depends(get_db),
               _: Principal = Depends(require("viewer"))) -> dict[str, Any]:
     with db.session() as s:
         bench = s.scalars(select(Bench).where(Bench.name == name)).first()
@@ -55,7 +56,8 @@ def get_bench(name: str, request: Request, db: Database = Depends(get_db),
         return bench_doc(s, bench, stale_after_s(request))
 
 
-@router.get("/health", tags=["health"], summary="Liveness and database reachability (no token needed)")
+@router.get("/health", tags=["health"], summary="Liveness and database reachability (no token needed)",
+            openapi_extra=problem_codes(503))
 def health(db: Database = Depends(get_db)) -> dict[str, Any]:
     try:
         with db.engine.connect() as conn:

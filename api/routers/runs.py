@@ -21,8 +21,8 @@ from sqlalchemy import func, select, update
 import procedures
 from api.auth import Principal, require
 from api.deps import get_db, run_or_404, stale_after_s
-from api.problems import Problem, summary, validation_errors
-from api.schemas import ID_PATTERN, DataFormat, DataStream, RunCreate
+from api.problems import Problem, problem_codes, summary, validation_errors
+from api.schemas import RowId, ID_PATTERN, DataFormat, DataStream, RunCreate
 from api.views import TERMINAL, iso, run_detail, run_summary
 from bench.config import BenchConfig
 from bench.engine import plan_summary
@@ -32,6 +32,8 @@ from bench.storage.db import Database
 from bench.storage.models import Bench, Event, ProbeReadingRow, Run, RunRequest, Telemetry, utcnow
 
 router = APIRouter(prefix="/runs", tags=["runs"])
+CONTROL_RESPONSES = {200: {"description": "A queued run was cancelled"},
+                     202: {"description": "Request recorded; the bench worker applies it at its next tick"}}
 MAX_ROWS = 200_000
 
 
@@ -39,31 +41,28 @@ def _bench_name(session, run: Run) -> str | None:
     return session.scalar(select(Bench.name).where(Bench.id == run.bench_id)) if run.bench_id else None
 
 
-@router.post("", status_code=201, summary="Queue a run")
+@router.post("", status_code=201, summary="Queue a run", openapi_extra=problem_codes(404))
 def create_run(body: RunCreate, request: Request, response: Response, db: Database = Depends(get_db),
                who: Principal = Depends(require("operator"))) -> dict[str, Any]:
     """Validate the procedure parameters and the plan against the bench's configuration, then queue
     the run for the bench's worker (at ``start_at`` if given)."""
-    try:
-        module = procedures.get(body.procedure)
-    except KeyError:
-        raise Problem(422, "Unknown procedure", f"procedure {body.procedure!r} does not exist; known: "
-                      f"{', '.join(procedures.PROCEDURE_MODULES)}") from None
+    with db.session() as s:
+        bench = s.scalars(select(Bench).where(Bench.name == body.bench)).first()
+        if bench is None:
+            known = ", ".join(s.scalars(select(Bench.name).order_by(Bench.name))) or "none configured"
+            raise Problem(404, "Unknown bench", f"bench {body.bench!r} is not configured; known: {known}")
+        config_doc = dict(bench.config or {})
+    module = procedures.get(body.procedure)            # the schema allows only known names
     try:
         params = module.Params.model_validate(body.params)
     except ValidationError as exc:
         errors = validation_errors(list(exc.errors()), ("body", "params"))
         raise Problem(422, "Invalid procedure parameters", summary(errors), errors=errors) from None
-    with db.session() as s:
-        bench = s.scalars(select(Bench).where(Bench.name == body.bench)).first()
-        if bench is None:
-            known = ", ".join(s.scalars(select(Bench.name).order_by(Bench.name))) or "none configured"
-            raise Problem(422, "Unknown bench", f"bench {body.bench!r} is not configured; known: {known}")
-        config_doc = dict(bench.config or {})
     try:
         config = BenchConfig.model_validate(config_doc)
         plan = module.build(params)
         estimate = plan_summary(plan, config)
+        procedures.check_duration(estimate)
     except PlanError as exc:
         raise Problem(422, "Plan refused", f"{body.procedure} on bench {body.bench}: {exc}") from None
     with db.session() as s:
@@ -103,7 +102,7 @@ def list_runs(request: Request, db: Database = Depends(get_db), _: Principal = D
 
 
 @router.get("/{run_id}", summary="Run state: status, step, progress, ETA, latest readings, gaps, suspensions")
-def get_run(run_id: int, request: Request, db: Database = Depends(get_db),
+def get_run(run_id: RowId, request: Request, db: Database = Depends(get_db),
             _: Principal = Depends(require("viewer"))) -> dict[str, Any]:
     with db.session() as s:
         run = run_or_404(s, run_id)
@@ -144,7 +143,7 @@ _CONTROL_SUMMARIES = {
 
 
 def _control_route(command: str):
-    def control(run_id: int, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
+    def control(run_id: RowId, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
         return _request(db, run_id, command, who)
 
     control.__name__ = f"{command}_run"
@@ -153,7 +152,7 @@ def _control_route(command: str):
 
 for _command, _summary in _CONTROL_SUMMARIES.items():
     router.add_api_route(f"/{{run_id}}/{_command}", _control_route(_command), methods=["POST"], summary=_summary,
-                         name=f"{_command}_run")
+                         name=f"{_command}_run", openapi_extra=problem_codes(409), responses=CONTROL_RESPONSES)
 
 
 # ------------------------------------------------------------------------------------------ data
@@ -199,8 +198,9 @@ def _cell(v: Any) -> Any:
 
 
 @router.get("/{run_id}/data", summary="Recorded data: 1-s means, frames, probes or telemetry (JSON or CSV)",
-            responses={200: {"content": {"application/json": {}, "text/csv": {}}}})
-def run_data(run_id: int, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+            responses={200: {"content": {"application/json": {}, "text/csv": {}}}},
+            openapi_extra=problem_codes(413))
+def run_data(run_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
              stream: DataStream = Query("seconds", description="seconds = aligned 1-s means (gyro deg/h, probes, "
                                         "chamber...); frames = every gyro frame; probes; telemetry"),
              t_from: float | None = Query(None, description="bench time (s) from, as in the bench_time_s / t column"),
@@ -252,7 +252,7 @@ def _event_doc(e: Event) -> dict[str, Any]:
 
 @router.get("/{run_id}/events", summary="Run events; live as Server-Sent Events with follow=true",
             responses={200: {"content": {"application/json": {}, "text/event-stream": {}}}})
-def run_events(run_id: int, request: Request, db: Database = Depends(get_db),
+def run_events(run_id: RowId, request: Request, db: Database = Depends(get_db),
                _: Principal = Depends(require("viewer")),
                after: int = Query(0, ge=0, le=2**62, description="only events with a larger id"),
                follow: bool = Query(False, description="stream new events (text/event-stream) until the run ends"),

@@ -36,6 +36,10 @@ def fit_command(
     if latitude is not None:
         opts["latitude_deg"] = latitude
     doc, results = fit_channels(model, train_ds, val_ds, channels, opts)
+    for r in results:
+        warning = ((r.definition or {}).get("earth_rate") or {}).get("warning")
+        if warning:
+            typer.secho(f"warning: {r.channel}: {warning}", err=True, fg=typer.colors.YELLOW)
     doc["train_source"], doc["validation_source"] = train, validate
     write_json(json_out, doc)
     if html_out:

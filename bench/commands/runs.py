@@ -299,7 +299,7 @@ def run_command(
 
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
-        plan_summary(plan, BenchConfig(), engine_config_for(make_clock(speed)))
+        procedures.check_duration(plan_summary(plan, BenchConfig(), engine_config_for(make_clock(speed))))
         bench = SimulatedBench(speed=speed, scenario=scenario, data_rate_hz=data_rate).start()
         config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
     elif sim_endpoints:
@@ -309,6 +309,7 @@ def run_command(
     try:
         engine_config = engine_config_for(clock)
         summary = plan_summary(plan, config, engine_config)     # PlanError here: nothing created, nothing moved
+        procedures.check_duration(summary)
         db = _open_db(db_url)
         launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
                   "sim": _sim_launch(bench, speed, scenario, chamber_transport) if bench else None,

@@ -300,114 +300,7 @@ def coefficients_command(
 
 
 # ----------------------------------------------------------------------------------------- import
-def import_dataset(db, dataset, gyro_id: str, *, source: str = "", bench_name: str | None = None,
-                   operator: str = "", progress=None) -> int:
-    """Store a measured-data ``Dataset`` as a completed run of procedure ``import``; returns the run id.
-
-    Bench time of the run = the CSV's ``time_s``.  Each row becomes one gyro frame in the KVH Format A
-    layout (deg/h -> deg/s, float32 as on the wire; the bytes are an encoding of the imported
-    values, not bytes received from a device, which the run's ``config_snapshot.import`` says), each
-    ``temp_<name>`` a probe reading, ``chamber_pv``/``chamber_sp`` chamber telemetry, ``power``
-    PSU on/off, and each stretch of constant ``orientation`` a ``record`` segment labelled with it.
-    The CSV's ``channel_probes`` (channel -> own probe) goes into the snapshot's ``gyro.channel_probes``
-    like a bench config's, so fits of the run use it.
-    """
-    import numpy as np
-
-    from bench.devices.kvh import encode_format_a
-    from bench.errors import DataFormatError
-    from bench.interfaces import GyroFrame, ProbeReading
-    from bench.storage import FrameWriter, queries
-    from bench.storage.models import utcnow
-
-    cols = dataset.columns
-    n = len(dataset)
-    if n == 0:
-        raise DataFormatError("no data rows", source=source)
-    if any(k.startswith("freq_") for k in cols):
-        raise DataFormatError("freq_<ch> columns (HRG) cannot be imported as KVH frames yet", source=source)
-    channels = [c for c in ("x", "y", "z") if f"gyro_{c}" in cols]
-    extra = [c for c in dataset.gyro_channels() if c not in ("x", "y", "z")]
-    if extra:
-        raise DataFormatError(f"gyro channels {extra}: only x, y, z map onto a stored frame", source=source)
-    t = np.asarray(cols["time_s"], dtype=np.float64)
-    gyro = np.zeros((n, 3))
-    for i, c in enumerate("xyz"):
-        if c in channels:
-            gyro[:, i] = np.asarray(cols[f"gyro_{c}"], dtype=np.float64) / 3600.0
-    valid = np.all(np.isfinite(gyro), axis=1)
-    gyro = np.nan_to_num(gyro)
-    probes = dataset.temp_names()
-    first_temp = np.asarray(cols[f"temp_{probes[0]}"], dtype=np.float64) if probes else np.full(n, np.nan)
-    meta = dict(dataset.meta)
-    for ch, probe in (meta.get("channel_probes") or {}).items():
-        if ch not in channels or probe not in probes:
-            raise DataFormatError(f"metadata channel_probes: {ch}={probe} names a "
-                                  + (f"channel without a gyro_{ch} column" if ch not in channels
-                                     else f"probe without a temp_{probe} column"), source=source)
-    snapshot = {"name": bench_name or "import", "latitude_deg": float(meta.get("latitude_deg", 45.75)),
-                "gyro": {"frame": "kvh_a", "output_units": "deg/s", "channels": channels,
-                         "channel_probes": dict(meta.get("channel_probes") or {})},
-                "import": {"source": source, "rows": n, "meta": meta,
-                           "note": "frames re-encoded from the CSV values (KVH Format A layout)"}}
-    with db.session() as s:
-        queries.ensure_gyro(s, gyro_id, type=meta.get("gyro_type"))
-        run = queries.create_run(s, procedure="import", parameters={"source": source, "rows": n},
-                                 config_snapshot=snapshot, operator=operator, gyro_id=gyro_id, bench_name=bench_name)
-        run.status, run.started_at = "running", utcnow()
-        run_id = run.id
-    rate = 1.0 / float(np.median(np.diff(t))) if n > 1 else None
-    writer = FrameWriter(db, run_id, frame_kind="kvh_a", nominal_rate_hz=rate, sequence_modulus=None)
-    try:
-        step = 5000
-        for start in range(0, n, step):
-            stop = min(n, start + step)
-            frames = []
-            for i in range(start, stop):
-                temp = float(first_temp[i])
-                raw = encode_format_a(tuple(gyro[i]), (0.0, 0.0, 0.0), sequence=i % 128,
-                                      temperature_c=temp if np.isfinite(temp) else 0.0,
-                                      status=0x77 if valid[i] else 0x00)
-                frames.append(GyroFrame(host_time=float(t[i]), sequence=i % 128, gyro=tuple(gyro[i]),
-                                        accel=(0.0, 0.0, 0.0), status=0x77 if valid[i] else 0x00,
-                                        temperature_c=temp if np.isfinite(temp) else float("nan"), raw=raw))
-                readings = [ProbeReading(p, "", float(v) if np.isfinite(v := cols[f"temp_{p}"][i]) else None,
-                                         None if np.isfinite(v) else "missing in CSV") for p in probes]
-                writer.add_probe_readings(float(t[i]), readings)
-                pv = cols["chamber_pv"][i] if "chamber_pv" in cols else np.nan
-                sp = cols["chamber_sp"][i] if "chamber_sp" in cols else np.nan
-                if np.isfinite(pv) or np.isfinite(sp):
-                    writer.add_telemetry(float(t[i]), "chamber", chamber_pv=float(pv) if np.isfinite(pv) else None,
-                                         chamber_sp=float(sp) if np.isfinite(sp) else None)
-                if "power" in cols and np.isfinite(cols["power"][i]):
-                    writer.add_telemetry(float(t[i]), "psu", psu_on=bool(cols["power"][i]))
-            writer.add_many(frames)
-            if progress is not None:
-                progress(stop - start)
-        orient = cols.get("orientation")
-        codes = np.asarray(orient, dtype=str) if orient is not None else np.full(n, "NUE")
-        period = 1.0 / rate if rate else 1.0
-        start = 0
-        for i in range(1, n + 1):
-            if i == n or codes[i] != codes[start]:
-                if codes[start]:
-                    t_end = float(t[i]) if i < n else float(t[-1]) + period
-                    writer.add_segment("record", float(t[start]), t_end, orientation=str(codes[start]),
-                                       labels={"source": "import", "position": str(codes[start])})
-                start = i
-        writer.close()
-    except BaseException:
-        writer.abandon()
-        with db.session() as s:
-            r = queries.get_run(s, run_id, for_update=True)
-            r.status, r.finished_at, r.error = "failed", utcnow(), "import interrupted"
-        raise
-    with db.session() as s:
-        r = queries.get_run(s, run_id, for_update=True)
-        r.status, r.finished_at, r.progress = "completed", utcnow(), 1.0
-        r.live = {"outcome": "completed", "import": True}
-        queries.add_event(s, run_id, "imported", f"{n} rows imported from {source or 'CSV'}")
-    return run_id
+from bench.commands.importing import import_csv, import_dataset  # noqa: E402,F401  (public here too)
 
 
 @guarded
@@ -420,14 +313,19 @@ def import_command(
     """Store a measured-data CSV as a completed run (then fit it with ``bench fit MODEL RUN_ID``)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from bench.fit.csvio import read_csv
+    from bench.fit.csvio import CsvStream
     from bench.storage import open_database
 
-    dataset = read_csv(Path(file))
+    CsvStream(file)          # a missing or unreadable file, or a bad header: one line, before the database
     db = open_database()
+    rows = [0]
+
+    def advance(k: int) -> None:
+        rows[0] += k
+        bar.advance(task, k)
+
     with Progress(TextColumn("[bold]import"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                   transient=False) as bar:
-        task = bar.add_task("rows", total=len(dataset))
-        run_id = import_dataset(db, dataset, gyro, source=str(file), bench_name=bench_name, operator=operator,
-                                progress=lambda k: bar.advance(task, k))
-    typer.echo(f"run {run_id}: {len(dataset)} rows of {file} stored for gyro {gyro}")
+        task = bar.add_task("rows", total=None)
+        run_id = import_csv(db, file, gyro, bench_name=bench_name, operator=operator, progress=advance)
+    typer.echo(f"run {run_id}: {rows[0]} rows of {file} stored for gyro {gyro}")

@@ -52,20 +52,42 @@ def format_channel_probes(mapping: dict[str, str]) -> str:
     return text
 
 
+DEFAULT_PROBE = "t1"      # S000/S001: probe T1 is the model temperature unless a map or a fit names another
+
+
 def default_probe(ds: Dataset, channel: str) -> str:
-    """The probe a channel uses when no map says otherwise: a probe named like the channel, else the
-    first probe of the data."""
+    """The probe a channel uses when no map says otherwise: a probe named like the channel, else
+    ``t1``; never another probe in its place (a missing T1 is an error naming it)."""
     names = ds.temp_names()
-    if not names:
-        raise DataFormatError("no temp_<name> column in data")
-    return channel if channel in names else names[0]
+    if channel in names:
+        return channel
+    if DEFAULT_PROBE in names:
+        return DEFAULT_PROBE
+    raise DataFormatError(f"no temp_{DEFAULT_PROBE} (the default probe) in data; give probe=NAME or a "
+                          f"channel_probes map to use another (temperature columns: "
+                          f"{', '.join(f'temp_{n}' for n in names) or 'none'})", column=f"temp_{DEFAULT_PROBE}")
+
+
+def channel_probe_map(ds: Dataset) -> dict[str, str]:
+    """The data's channel -> own-probe map (empty when none is declared).  ``meta["channel_probes"]``
+    may hold the dict (CSV reader, run export) or its text form ``"x=t1,y=t2"`` (a dataset built in
+    memory); a malformed text is a ``DataFormatError`` naming it."""
+    raw = ds.meta.get("channel_probes")
+    if not raw:
+        return {}
+    if isinstance(raw, dict):
+        return {str(ch): str(probe) for ch, probe in raw.items()}
+    try:
+        return parse_channel_probes(str(raw))
+    except ValueError as exc:
+        raise DataFormatError(f"metadata {exc}") from None
 
 
 def channel_probe(ds: Dataset, channel: str) -> str:
     """The channel's own temperature probe: ``ds.meta["channel_probes"][channel]`` when the data
     declares it (bench config / run metadata / CSV ``# channel_probes:`` line), else
     ``default_probe``.  A mapped probe without a ``temp_<probe>`` column is an error."""
-    mapping = ds.meta.get("channel_probes") or {}
+    mapping = channel_probe_map(ds)
     if channel not in mapping:
         return default_probe(ds, channel)
     probe = mapping[channel]

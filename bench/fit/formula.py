@@ -67,6 +67,13 @@ _COLUMN_UNITS = {"chamber_pv": "C", "chamber_sp": "C", "table_rate_dps": "deg/s"
 _PREFIX_UNITS = {"gyro_": "deg/h", "temp_": "C", "freq_": "Hz", "rate_": "C/min", "lag_": "C"}
 
 
+# limits, the same for the CLI, the API and procedure parameters (a formula beyond them is refused)
+MAX_FORMULA_CHARS = 300       # characters
+MAX_DEPTH = 16                # nesting of parentheses
+MAX_EXPONENT = 9              # t1^9: beyond that the powers of a temperature are numerically meaningless
+MAX_CONSTANT = 1e6            # |number| in a formula
+
+
 class FormulaError(BenchError):
     """A formula that cannot be parsed or resolved; ``position`` is the 1-based character column."""
 
@@ -81,7 +88,10 @@ class FormulaError(BenchError):
 # ------------------------------------------------------------------------------------------- parser
 class _Parser:
     def __init__(self, text: str) -> None:
+        if len(text) > MAX_FORMULA_CHARS:
+            raise FormulaError(text[:40] + "...", None, f"{len(text)} characters; at most {MAX_FORMULA_CHARS}")
         self.text = text
+        self.depth = 0
         self.tokens: list[tuple[str, str, int]] = []
         pos = 0
         while pos < len(text):
@@ -150,6 +160,8 @@ class _Parser:
             exp_tok = self.peek()
             if exp_tok is None or exp_tok[0] != "num" or not re.fullmatch(r"\d+", exp_tok[1]) or int(exp_tok[1]) < 1:
                 raise self.error(exp_tok, "exponent must be a whole number >= 1")
+            if int(exp_tok[1]) > MAX_EXPONENT:
+                raise self.error(exp_tok, f"exponent {exp_tok[1]} is above the limit of {MAX_EXPONENT}")
             self.take()
             node = {"op": "pow", "args": [node], "exp": int(exp_tok[1])}
         return node
@@ -163,11 +175,17 @@ class _Parser:
             self.take()
             return {"op": "atom", "name": value}
         if kind == "num":
+            if not abs(float(value)) <= MAX_CONSTANT:
+                raise self.error(tok, f"number {value} is beyond the limit of +-{MAX_CONSTANT:g}")
             self.take()
             return {"op": "const", "value": float(value)}
         if value == "(":
+            self.depth += 1
+            if self.depth > MAX_DEPTH:
+                raise self.error(tok, f"parentheses nested deeper than {MAX_DEPTH}")
             self.take()
             node = self.expr()
+            self.depth -= 1
             close = self.peek()
             if close is None or close[1] != ")":
                 raise self.error(close, "missing ')'")

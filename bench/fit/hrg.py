@@ -38,7 +38,7 @@ import numpy as np
 
 from bench.errors import DataFormatError
 from bench.fit import pso
-from bench.fit.base import Dataset, FitResult, channel_probe
+from bench.fit.base import Dataset, FitResult, channel_probe, channel_probe_map
 from bench.fit.fog import (
     RATE_METHOD,
     _column,
@@ -261,7 +261,7 @@ def _reference_probe(dataset: Dataset, channel: str, opts: dict[str, Any], *keys
     for key in keys:
         if opts.get(key):
             return opts[key]
-    if channel in (dataset.meta.get("channel_probes") or {}):
+    if channel in channel_probe_map(dataset):
         return channel_probe(dataset, channel)
     return None
 

@@ -54,7 +54,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from bench.errors import DataFormatError
 from bench.fit import prep
-from bench.fit.base import Dataset, FitResult, channel_probe
+from bench.fit.base import EARTH_RATE_DPH, Dataset, FitResult, channel_probe, channel_probe_map
 from bench.fit.formula import (CompiledFormula, compile_formula, compile_terms, compiled_from_recipe,
                                signal_key, uses_channel_probe)
 from bench.fit.linear import lstsq
@@ -67,25 +67,48 @@ RATE_FILTER_TEXT = ("centred least-squares slope of the temperature over window_
                     "first derivative), in C/min")
 
 
+NeedsFn = Callable[[str, dict[str, Any]], list[str]]
+
+
+def _needs_gyro(channel: str, opts: dict[str, Any]) -> list[str]:
+    return [f"gyro_{channel}"]
+
+
 @dataclass(frozen=True)
 class ModelSpec:
     name: str
     fit: FitFn
     predict: PredictFn
     description: str = ""
+    needs: NeedsFn = _needs_gyro       # (channel, options) -> columns the fit cannot do without
 
 
 _REGISTRY: dict[str, ModelSpec] = {}
 
 
 def register_model(name: str, fit_fn: FitFn, predict_fn: PredictFn, *, description: str = "",
-                   replace: bool = False) -> None:
-    """Add a model to the registry (``fit_fn(ds, channel, **opts)``, ``predict_fn(result, ds, **opts)``)."""
+                   replace: bool = False, needs: NeedsFn | None = None) -> None:
+    """Add a model to the registry (``fit_fn(ds, channel, **opts)``, ``predict_fn(result, ds, **opts)``;
+    ``needs(channel, opts)``: the columns it needs, checked before fitting; default ``gyro_<channel>``)."""
     if not name.isidentifier():
         raise ValueError(f"model name {name!r} must be an identifier")
     if name in _REGISTRY and not replace:
         raise ValueError(f"model {name!r} already registered")
-    _REGISTRY[name] = ModelSpec(name, fit_fn, predict_fn, description)
+    _REGISTRY[name] = ModelSpec(name, fit_fn, predict_fn, description, needs or _needs_gyro)
+
+
+def required_columns(name: str, channel: str, opts: dict[str, Any] | None = None) -> list[str]:
+    """The columns model ``name`` needs to fit ``channel`` with ``opts`` (a formula: ``gyro_<channel>``)."""
+    spec = _REGISTRY.get(name.strip())
+    return (spec.needs if spec is not None else _needs_gyro)(channel, dict(opts or {}))
+
+
+def check_columns(name: str, dataset: Dataset, channel: str, opts: dict[str, Any] | None = None) -> None:
+    """Refuse a dataset that lacks a column the model needs, naming it and the columns present."""
+    missing = [c for c in required_columns(name, channel, opts) if c not in dataset]
+    if missing:
+        raise DataFormatError(f"{name.strip()} on channel {channel}: no {', '.join(missing)} in data, which the "
+                              f"model needs (columns present: {', '.join(dataset.columns)})", column=missing[0])
 
 
 def registered_models() -> dict[str, str]:
@@ -96,6 +119,7 @@ def fit_model(name_or_formula: str, dataset: Dataset, channel: str, **opts: Any)
     """Fit a registered model by name, or a formula (any other text) to ``gyro_<channel>``."""
     spec = _REGISTRY.get(name_or_formula.strip())
     if spec is not None:
+        check_columns(spec.name, dataset, channel, opts)
         return spec.fit(dataset, channel, **opts)
     return fit_formula(dataset, channel, formula=name_or_formula, **opts)
 
@@ -141,6 +165,16 @@ def prepare_fit_data(ds: Dataset, channel: str, *, earth_rate: bool | None = Non
         info["earth_rate_removed"] = True
         info["latitude_deg"] = float(latitude_deg if latitude_deg is not None else ds.meta["latitude_deg"])
         info["axis"] = (prep.default_axis(channel) if axis is None else np.asarray(axis, float)).tolist()
+        if "orientation" in ds:
+            unknown = np.asarray(ds["orientation"]).astype(str) == ""
+            if unknown.any():       # the Earth rate there is unknown: leave those rows out, say so
+                y = np.where(unknown, np.nan, y)
+                info["warning"] = (f"{int(unknown.sum())} of {unknown.size} rows have no orientation: their Earth "
+                                   f"rate is unknown, so they are left out of the fit")
+    elif not lat_known and axis_known and "orientation" in ds and \
+            bool((np.asarray(ds["orientation"]).astype(str) != "").any()):
+        info["warning"] = (f"latitude unknown: the Earth rate (up to {EARTH_RATE_DPH:.2f} deg/h on {target}) stays in "
+                           f"the fitted bias (intercept); give latitude_deg (CSV '# latitude_deg: ...' or --latitude)")
     work = prep.add_rates(ds, rate_window_s)
     work = work.with_columns(**{"__target": y})
     if average_s:
@@ -300,8 +334,20 @@ def _own_probe(ds: Dataset, channel: str, probe: str | None) -> tuple[str, str]:
     (``bench.fit.base.channel_probe``: the data's ``channel_probes`` map, else the default)."""
     if probe:
         return _check_probe(ds, probe), "probe option"
-    mapped = channel in (ds.meta.get("channel_probes") or {})
+    mapped = channel in channel_probe_map(ds)
     return channel_probe(ds, channel), "channel_probes metadata" if mapped else "default (no channel_probes entry)"
+
+
+def _probe_needs(channel: str, opts: dict[str, Any]) -> list[str]:
+    probe = opts.get("probe")
+    if probe:
+        return [f"gyro_{channel}", f"temp_{probe}"]
+    return [f"gyro_{channel}"]           # the default probe is resolved (and refused) by base.default_probe
+
+
+def _patent37_needs(channel: str, opts: dict[str, Any]) -> list[str]:
+    probes = opts.get("probes") or ["t1", "t2", "t3", "t4"]
+    return [f"gyro_{channel}"] + [f"temp_{p}" for p in probes]
 
 
 def _check_probe(ds: Dataset, probe: str) -> str:
@@ -369,7 +415,7 @@ def fit_dynamic(ds: Dataset, channel: str, *, probe: str | None = None, grad: tu
 def fit_patent37(ds: Dataset, channel: str, *, probes: list[str] | None = None, t0_c: float = 25.0,
                  **opts: Any) -> FitResult:
     """S001 37-term four-probe model, centred temperatures, rates in C/min."""
-    probes = list(probes or ds.temp_names()[:4])
+    probes = list(probes or ["t1", "t2", "t3", "t4"])
     if len(probes) != 4:
         raise DataFormatError(f"patent37 needs 4 probes, have {probes}")
     terms: list[tuple[str, str]] = []
@@ -410,12 +456,12 @@ def fit_formula(ds: Dataset, channel: str, *, formula: str, probe: str | None = 
                             extra_definition={**extra, **opts.pop("extra_definition", {})}, **opts)
 
 
-for _name, _fit, _desc in (
-        ("static", fit_static, "S000 eq 3 static cubic about t0 = 25 C"),
-        ("dynamic", fit_dynamic, "S000 eq 4 / eq 5 dynamic model (T - t0, gradient, dT/dt)"),
-        ("patent37", fit_patent37, "S001 37-term four-probe model"),
-        ("formula", fit_formula, "intercept + user terms")):
-    register_model(_name, _fit, predict_linear, description=_desc)
+for _name, _fit, _desc, _needs in (
+        ("static", fit_static, "S000 eq 3 static cubic about t0 = 25 C", _probe_needs),
+        ("dynamic", fit_dynamic, "S000 eq 4 / eq 5 dynamic model (T - t0, gradient, dT/dt)", _probe_needs),
+        ("patent37", fit_patent37, "S001 37-term four-probe model", _patent37_needs),
+        ("formula", fit_formula, "intercept + user terms", _needs_gyro)):
+    register_model(_name, _fit, predict_linear, description=_desc, needs=_needs)
 
 
 def signal_of(result: FitResult, key: str) -> list[float] | None:

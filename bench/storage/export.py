@@ -29,7 +29,7 @@ from sqlalchemy import select
 
 from bench.storage.db import Database
 from bench.storage.errors import StorageError
-from bench.storage.models import ProbeReadingRow, Run, Segment, Telemetry
+from bench.storage.models import Gyro, ProbeReadingRow, Run, Segment, Telemetry
 from bench.storage.reader import read_frames, second_means
 
 _TO_DPH = {"deg/s": 3600.0, "rad/s": 180.0 / math.pi * 3600.0, "deg/h": 1.0}
@@ -72,6 +72,12 @@ def _interpolated(t_src: np.ndarray, v_src: np.ndarray, t: np.ndarray, max_gap_s
     tail = (after >= t_src.size) & (t - t_src[-1] <= max_gap_s)
     ok = exact | (inside & (gap <= max_gap_s)) | tail
     out[~ok] = np.nan
+    # a sample within a microsecond (the resolution of stored frame times) is the value itself, not a
+    # slope times the rounding: an imported CSV's probe column reads back exactly
+    nearest = np.clip(np.searchsorted(t_src, t), 1, max(1, t_src.size - 1))
+    for cand in (nearest - 1, np.minimum(nearest, t_src.size - 1)):
+        same = np.abs(t_src[cand] - t) <= 1e-6
+        out[same] = v_src[cand[same]]
     return out
 
 
@@ -226,11 +232,15 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
     frame second), ``gyro_<ch>`` (deg/h, Earth rate not removed), ``temp_<probe>`` (DS18B20; the
     gyro's own sensor as ``temp_gyro`` only when no probe was read), ``freq_<ch>`` (HRG),
     ``orientation`` (segment label, empty = unknown), ``power`` (PSU output 1/0), ``chamber_pv``,
-    ``chamber_sp``.  Metadata: run_id, procedure, gyro_id, gyro_type, sample_period_s = 1,
-    bench_time0_s (bench time of ``time_s`` 0), ``channel_probes`` (dict channel -> its own probe, from the
-    config snapshot's ``gyro.channel_probes``, when the bench declared it) and ``latitude_deg`` (argument, else the run's config
-    snapshot) only when every row has an orientation, so the Earth rate is removed only where it can
-    be.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or the default SQLite file).
+    ``chamber_sp``.  Metadata (everything a fit needs, so export -> import -> fit equals the fit by run
+    ID): run_id, procedure, gyro_id, gyro_type (the gyro's stored type, else the frame kind),
+    gyro_frame, sample_period_s = 1, bench_time0_s (bench time of ``time_s`` 0), ``channel_probes`` (dict
+    channel -> its own probe, from the config snapshot's ``gyro.channel_probes``, when the bench declared
+    it) and ``latitude_deg``
+    (argument, else the run's config snapshot) whenever it is known; a fit leaves rows without an
+    orientation out of Earth-rate removal and says so.  An imported run gives only the gyro and
+    frequency channels its file had.  ``db`` defaults to ``open_database()`` (``$BENCH_DATABASE_URL`` or
+    the default SQLite file).
     ``max_age_s`` (previous-sample hold of probes/telemetry) defaults to the run's recorded engine
     periods (``runs.live["engine_config"]``) x 2, at least 30 s.
     """
@@ -250,9 +260,16 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
             meta = {"run_id": str(run.id), "procedure": run.procedure, "sample_period_s": "1"}
             if run.gyro_id:
                 meta["gyro_id"] = run.gyro_id
+                gyro = s.get(Gyro, run.gyro_id)
+                if gyro is not None and gyro.type:
+                    meta["gyro_type"] = str(gyro.type)
         gyro_cfg = snapshot.get("gyro") or {}
         if gyro_cfg.get("frame"):
-            meta["gyro_type"] = str(gyro_cfg["frame"])
+            meta["gyro_frame"] = str(gyro_cfg["frame"])
+            meta.setdefault("gyro_type", str(gyro_cfg["frame"]))
+        imported = "import" in snapshot      # an imported run holds only the channels its file had
+        recorded_channels = gyro_cfg.get("channels") if imported else None
+        freq_channels = gyro_cfg.get("freq_channels") if imported else None
         if gyro_cfg.get("channel_probes"):
             meta["channel_probes"] = {str(ch): str(p) for ch, p in gyro_cfg["channel_probes"].items()}
         if max_age_s is None:
@@ -270,7 +287,8 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
         if keep.any():
             meta["bench_time0_s"] = repr(float(t[0] - cols["time_s"][0]))
         for name in sorted(cols):
-            if name.startswith(("gyro_", "freq_")):
+            if (name.startswith("freq_") and (freq_channels is None or name[5:] in freq_channels)) or (
+                    name.startswith("gyro_") and (recorded_channels is None or name[5:] in recorded_channels)):
                 out[name] = cols[name][keep]
         probes = [n for n in sorted(cols) if n.startswith("temp_") and n not in ("temp_gyro", "temp_point_c")]
         for name in probes or (["temp_gyro"] if "temp_gyro" in cols else []):
@@ -282,7 +300,7 @@ def run_dataset(run_id: int, db: Database | None = None, *, latitude_deg: float 
             if name in cols:
                 out[name] = cols[name][keep]
         lat = latitude_deg if latitude_deg is not None else snapshot.get("latitude_deg")
-        if lat is not None and out["orientation"].size and bool(np.all(out["orientation"] != "")):
+        if lat is not None:       # rows without an orientation are left out of Earth-rate removal by the fit
             meta["latitude_deg"] = repr(float(lat))
         return Dataset(out, meta)
     finally:
