@@ -80,7 +80,7 @@ async def coefficients(gyro_id: GyroPath, request: Request, db: Database = Depen
             summary="One model's coefficients for firmware: json, PX4 or ArduPilot parameters, or a C header",
             responses={200: {"content": {"text/plain": {}, "text/x-c": {}, "application/json": {}}},
                        422: {"description": "the model cannot be expressed in that format (reason given)"}})
-def export_coefficients(gyro_id: str, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+def export_coefficients(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
                         model: str = Query(..., min_length=1, max_length=300),
                         format: Literal["json", "px4", "ardupilot", "c-header"] = Query(...),
                         version: int | None = Query(None, ge=1, le=1_000_000),
