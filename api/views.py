@@ -85,6 +85,9 @@ def run_detail(session: Session, db: Database, run: Run, bench_name: str | None,
                                    .order_by(RunRequest.id))]
     doc["fits"] = live.get("fits")
     doc["latest"] = latest_readings(session, db, run.id)
+    from bench.storage.sampling import sampling_summary
+
+    doc["sampling"] = sampling_summary(db, run.id, max_age_s=0.0 if run.status in TERMINAL else 5.0)
     return doc
 
 

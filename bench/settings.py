@@ -10,6 +10,8 @@ BENCH_TOKENS_FILE          where ``bench serve`` writes generated tokens, mode 0
 BENCH_STALE_AFTER_S        a worker heartbeat older than this (wall s) means it died (15)
 BENCH_CONFIG               bench config JSON for ``bench run`` without ``--config`` (none)
 BENCH_LOG_FORMAT           ``text`` or ``json`` (JSON lines) for the service logs (text)
+BENCH_SIM_HOLD_FILE        simulated bench only: a file naming a bench instant at which the lockstep
+                           clock holds (tests use it to stop a run at a known instant; none)
 =========================  ==========================================================================
 
 ``load_settings()`` reads the environment on every call (tests and ``bench demo`` set variables at run
@@ -36,6 +38,7 @@ class Settings(BaseSettings):
     stale_after_s: float = Field(15.0, gt=0, description="worker heartbeat staleness limit, wall seconds")
     config: str = Field("", description="bench config JSON used by bench run without --config")
     log_format: Literal["text", "json"] = Field("text", description="service log format")
+    sim_hold_file: str = Field("", description="simulated bench: file naming a bench instant to hold at (tests)")
 
     @property
     def database_url_or_default(self) -> str:

@@ -124,7 +124,8 @@ class Worker:
     ``devices_factory(config) -> Devices`` opens the drivers for a run (closed after it; None = the real
     drivers of ``bench.engine.factory.build_devices``); ``engine_config`` defaults to
     ``engine_config_for(clock)``;
-    ``clock`` is the bench clock shared with the devices (a simulated bench's accelerated clock).
+    ``clock`` is the bench clock shared with the devices (a simulated bench's lockstep clock);
+    ``bench_state`` the simulated bench itself, whose physical state goes into the run's checkpoints.
     ``heartbeat_s`` / ``stale_after_s`` are wall seconds: a run or bench lease whose heartbeat is older
     than ``stale_after_s`` belongs to a dead worker.
     """
@@ -133,7 +134,7 @@ class Worker:
                  clock: Clock, *, engine_config: EngineConfig | None = None, worker_id: str | None = None,
                  heartbeat_s: float = 1.0, stale_after_s: float = 15.0, poll_s: float = 0.5,
                  accept_fits: bool = True, writer_options: dict[str, Any] | None = None,
-                 run_jobs: bool = True) -> None:
+                 run_jobs: bool = True, bench_state: Any = None) -> None:
         if stale_after_s <= 2 * heartbeat_s:
             raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
         self.db = db
@@ -141,6 +142,7 @@ class Worker:
         self.config = config
         self.devices_factory = devices_factory or (lambda cfg: build_devices(cfg, clock))
         self.clock = clock
+        self.bench_state = bench_state
         self.engine_config = engine_config or engine_config_for(clock)
         self.worker_id = worker_id or default_worker_id(bench_name)
         self.heartbeat_s = heartbeat_s
@@ -264,7 +266,8 @@ class Worker:
                                 publish_s=self.heartbeat_s, lease=lease)
             engine = Engine(fence_devices(devices, lease), store, self.clock, self.config, control,
                             self.engine_config,
-                            make_fit_hook(self.db, store, latitude_deg=self.config.latitude_deg, accept=self.accept_fits))
+                            make_fit_hook(self.db, store, latitude_deg=self.config.latitude_deg, accept=self.accept_fits),
+                            bench_state=self.bench_state)
             self.engine = engine
             beat.start()
             if resume and has_checkpoint:
@@ -345,7 +348,8 @@ class Worker:
         except Exception:  # noqa: BLE001 - progress is advisory; the engine may be between steps
             return
         now = utcnow()
-        speed = getattr(self.clock, "speed", 1.0)
+        measured = getattr(self.clock, "effective_speed", None)     # lockstep: what the host achieves
+        speed = (measured() if measured else None) or getattr(self.clock, "speed", 1.0)
         finite_speed = speed if speed and speed != float("inf") else None
         remaining = float(progress.get("remaining_bench_s") or 0.0)
         wall_left = remaining / finite_speed if finite_speed else 0.0

@@ -5,7 +5,9 @@
   that bench returns it takes the run over and resumes it from its checkpoint to the end.
 
 The worker process runs this module (``python -m tests.test_api_process worker ...``) on the device
-doubles, with the accelerated clock passed in so every worker process shares the bench time axis.
+doubles, with a lockstep clock (``bench.clock.LockstepClock``) whose hold file the test writes: the
+run stops at a known bench instant while the test kills processes, so nothing here races the wall
+clock; a returning worker resumes from the checkpoint with the outage passing in bench time.
 tests/test_api_serve.py runs ``bench serve`` (API + worker + simulated bench in one process).
 """
 from __future__ import annotations
@@ -26,6 +28,7 @@ from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_fo
 
 ROOT = Path(__file__).resolve().parents[1]
 PY = sys.executable
+T0 = 1_767_225_600.0          # the bench instant the worker's lockstep clock starts at
 
 
 def free_port() -> int:
@@ -117,7 +120,7 @@ def pg_db_url(pg_url):
 
 def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
     """SQLite; the worker process drives the device doubles (the engine's own test doubles)."""
-    from bench.clock import AcceleratedClock
+    from bench.clock import LockstepClock
     from bench.storage import open_database
     from tests.api_support import register_bench
 
@@ -125,11 +128,12 @@ def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
     db = open_database(db_url)       # migrate once before the processes start
     register_bench(db, "proc1")
     db.dispose()
-    clock = AcceleratedClock(150.0).to_json()
+    hold = tmp_path / "hold"
+    clock = LockstepClock(T0, 150.0, hold_file=str(hold)).to_json()
     p = Procs(db_url, tmp_path)
     start = lambda: _doubles_worker(p, "proc1", clock)    # noqa: E731
     try:
-        _kill_and_resume(p, db_url, start, SHORT_RAMP, check_fit=True)
+        _kill_and_resume(p, db_url, start, SHORT_RAMP, check_fit=True, hold=hold)
     finally:
         p.close()
 
@@ -137,23 +141,37 @@ def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
 @pytest.mark.postgres
 def test_kill_api_then_worker_mid_run_postgres_doubles(pg_db_url, tmp_path):
     """The same on PostgreSQL (row locks: the claim and the takeover run under SELECT ... FOR UPDATE)."""
-    from bench.clock import AcceleratedClock
+    from bench.clock import LockstepClock
     from bench.storage import open_database
     from tests.api_support import register_bench
 
     db = open_database(pg_db_url)
     register_bench(db, "proc1")
     db.dispose()
-    clock = AcceleratedClock(150.0).to_json()
+    hold = tmp_path / "hold"
+    clock = LockstepClock(T0, 150.0, hold_file=str(hold)).to_json()
     p = Procs(pg_db_url, tmp_path)
     try:
-        _kill_and_resume(p, pg_db_url, lambda: _doubles_worker(p, "proc1", clock), SHORT_RAMP, check_fit=True)
+        _kill_and_resume(p, pg_db_url, lambda: _doubles_worker(p, "proc1", clock), SHORT_RAMP, check_fit=True,
+                         hold=hold)
     finally:
         p.close()
 
 
-def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fit: bool) -> None:
+def _hold_at(hold: Path, t: float) -> None:
+    """Let the worker's bench time run to ``t`` and wait until it stands there."""
+    tmp = hold.with_suffix(".tmp")
+    tmp.write_text(repr(t))
+    tmp.replace(hold)
+    marker = Path(str(hold) + ".held")
+    wait_for(lambda: marker.exists() and float(marker.read_text()) == t, 60, f"bench time held at {t}",
+             interval=0.05)
+
+
+def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fit: bool, hold: Path) -> None:
     if True:
+        _hold_at_later = T0 + 200.0             # about a third into the short ramp run (~700 bench s)
+        hold.write_text(repr(_hold_at_later))
         port = free_port()
         api = p.api(port)
         worker = start_worker()
@@ -163,27 +181,30 @@ def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fi
         r = httpx.post(f"http://127.0.0.1:{port}/runs", json=body, headers=OPERATOR, timeout=10)
         assert r.status_code == 201, r.text
         rid = r.json()["id"]
-        wait_for(lambda: _get(port, rid)["progress_percent"] > 3, 20, "run progressing")
-        # 1. the API dies: the run goes on
+        _hold_at(hold, _hold_at_later)
+        wait_for(lambda: (_db_run(db_url, rid)[1] or 0) > 0.03, 20, "progress published at the hold")
+        # 1. the API dies: the run goes on (bench time moves on to a second hold)
         p.kill(api)
         before = _db_run(db_url, rid)[1]
-        time.sleep(1.0)
+        _hold_at(hold, T0 + 350.0)
+        wait_for(lambda: _db_run(db_url, rid)[1] > before, 20, "progress after the API died")
         status, after, *_ = _db_run(db_url, rid)
         assert status == "running" and after > before
         port = free_port()
         p.api(port)
         doc = _get(port, rid)
         assert doc["status"] == "running" and doc["worker_alive"]
-        # 2. the worker dies (kill -9): the run is left running with a stale heartbeat
+        # 2. the worker dies (kill -9) while held mid-run: the run is left running with a stale heartbeat
         p.kill(worker)
         stuck = wait_for(lambda: (d := _get(port, rid))["worker_alive"] is False and d, 10, "stale heartbeat")
         assert stuck["progress_percent"] < 100
         assert stuck["status"] in ("running", "paused", "suspended")
         frozen = stuck["progress_percent"]
-        # a worker for the bench returns: it takes the run over and resumes it
+        # a worker for the bench returns (no hold): it takes the run over and resumes it
+        hold.unlink()
         start_worker()
         done = wait_for(lambda: (d := _get(port, rid))["status"] in ("completed", "failed", "aborted") and d,
-                        40, "resumed run finished")
+                        60, "resumed run finished")
         assert done["outcome"] == "completed", done
         assert done["progress_percent"] == pytest.approx(100.0) and frozen < 100
         assert any(g["reason"] == "engine interrupted" for g in done["gaps"])

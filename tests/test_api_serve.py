@@ -1,6 +1,8 @@
 """``bench serve`` end to end: API + worker + simulated bench (real drivers over loopback) in one
 process, on the embedded SQLite default and on PostgreSQL.  Through HTTP: start a shortened thermal_ramp, watch its
-progress, stop it, start another, let it finish, fetch the coefficients by gyro ID."""
+progress, stop it, start another, let it finish, fetch the coefficients by gyro ID.  The first run is
+held at a known bench instant (the lockstep clock's hold file) while it is watched and stopped, so the
+test does not race the wall clock."""
 from __future__ import annotations
 
 import os
@@ -16,6 +18,7 @@ from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_fo
 from tests.test_api_process import free_port
 
 BENCH = str(Path(sys.executable).with_name("bench"))
+T0 = 1_767_225_600.0          # a seeded simulated bench starts at this bench instant
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -30,8 +33,12 @@ def test_serve_simulated_bench_end_to_end(tmp_path, database_url):
     if database_url:
         env["BENCH_DATABASE_URL"] = database_url
     env["BENCH_TOKENS"] = TOKENS_TEXT
+    hold = tmp_path / "hold"
+    env["BENCH_SIM_HOLD_FILE"] = str(hold)
+    hold.write_text(repr(T0 + 150.0))       # in the first run's soak, about a fifth of the run
     log = open(tmp_path / "serve.log", "wb")
-    proc = subprocess.Popen([BENCH, "serve", "--port", str(port), "--speed", "200", "--log-level", "warning"],
+    proc = subprocess.Popen([BENCH, "serve", "--port", str(port), "--speed", "200", "--seed", "3",
+                             "--log-level", "warning"],
                             cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
     base = f"http://127.0.0.1:{port}"
     try:
@@ -48,9 +55,14 @@ def test_serve_simulated_bench_end_to_end(tmp_path, database_url):
         body = {"procedure": "thermal_ramp", "gyro_id": "SIM-42", "bench": "sim1", "params": params}
         first = httpx.post(f"{base}/runs", json=body, headers=OPERATOR, timeout=10).json()["id"]
         get = lambda rid: httpx.get(f"{base}/runs/{rid}", headers=VIEWER, timeout=10).json()   # noqa: E731
-        seen = wait_for(lambda: (d := get(first))["progress_percent"] > 10 and d, 30, "progress")
-        assert seen["status"] == "running" and seen["eta_utc"] and seen["latest"].get("chamber")
+        marker = Path(str(hold) + ".held")
+        wait_for(lambda: marker.exists() and float(marker.read_text()) == T0 + 150.0, 60, "the hold instant")
+        seen = wait_for(lambda: (d := get(first))["progress_percent"] > 10 and d["latest"].get("chamber") and d,
+                        30, "progress and readings at the hold")
+        assert seen["status"] == "running" and seen["eta_utc"]
+        assert seen["sampling"]["probes"]["max_interval_s"] <= 2.0
         assert httpx.post(f"{base}/runs/{first}/stop", headers=OPERATOR, timeout=10).status_code == 202
+        hold.unlink()
         ended = wait_for(lambda: (d := get(first))["status"] in ("completed", "aborted", "failed") and d, 30,
                          "first run stopped")
         assert ended["outcome"] == "stopped", ended

@@ -102,7 +102,7 @@ def test_written_case_reads_back_as_measured_data(tmp_path):
     record = write_case(case, tmp_path)
     back = read_csv(tmp_path / "train.csv")
     coils = {node[-1]: probe for probe, node in case.probe_nodes.items() if node.startswith("coil_")}
-    assert back.meta["channel_probes"] == f"x={coils['x']},y={coils['y']},z={coils['z']}"
+    assert back.meta["channel_probes"] == {"x": coils["x"], "y": coils["y"], "z": coils["z"]}
     assert "latitude_deg" in back.meta
     assert np.array_equal(back["temp_t2"], case.train["temp_t2"])
     assert list(back["orientation"]) == list(case.train["orientation"])

@@ -270,7 +270,7 @@ def operator_session(service: str, page) -> None:
     page.fill("#validation_run_id", "999")
     page.click("#closeloop-form button[type=submit]")
     page.wait_for_selector("#alert.error")
-    assert "422" in page.text_content("#alert") and "run 999 does not exist" in page.text_content("#alert")
+    assert "404" in page.text_content("#alert") and "run 999 does not exist" in page.text_content("#alert")
 
     assert not errors, errors
     assert time.monotonic() - t_start < 60, "the browser test must stay under 60 s"

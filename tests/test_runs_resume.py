@@ -1,6 +1,8 @@
 """kill -9 of ``bench run --sim`` in the middle of a ramp, then ``bench resume``: the run completes,
-every frame committed before the kill is still there unchanged, no frame index is used twice, and
-the interruption is a recorded gap."""
+every frame committed before the kill is still there unchanged, no frame index is used twice, the
+interruption is a recorded gap, and the simulated bench continues from its checkpointed physical
+state: chamber and probe temperatures do not jump across the outage (which lasts a stated 120 bench
+seconds, so nothing here depends on how long the host took to restart)."""
 from __future__ import annotations
 
 import json
@@ -18,7 +20,10 @@ from bench.storage.models import FrameChunk, Gap, Run, Segment, Step
 from tests.test_runs_support import cli, last_json
 
 ROOT = Path(__file__).resolve().parents[1]
-PARAMS = ["start_c=30", "soak_h=0.02", "warmup_min=1", "rate_c_per_min=1", "end_c=18", "final_hold_min=1"]
+OUTAGE_S = 120.0
+T0 = 1_767_225_600.0            # a seeded simulated bench starts at this bench instant
+HOLD_T = T0 + 500.0             # the ramp runs from about T0 + 132 s to T0 + 852 s
+PARAMS = ["start_c=30", "soak_h=0.02", "warmup_min=1", "rate_c_per_min=1", "end_c=42", "final_hold_min=1"]
 
 
 def _chunks(db, rid):
@@ -27,36 +32,61 @@ def _chunks(db, rid):
                          .where(FrameChunk.run_id == rid).order_by(FrameChunk.first_index)).all()
 
 
-def _wait_mid_ramp(db, rid: int, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
-    """Until a checkpoint taken inside the ramp step is stored (and frames are committed)."""
+def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path, timeout_s: float = 120.0) -> None:
+    """Until the run stands at the hold instant inside its ramp, with a checkpoint taken inside the
+    ramp stored and frames committed (the bench time does not move meanwhile)."""
+    marker = Path(str(hold) + ".held")
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         assert proc.poll() is None, proc.stderr.read().decode()[-3000:]
-        with db.session() as s:
-            run = s.get(Run, rid)
-            ramp = s.scalars(select(Step).where(Step.run_id == rid, Step.kind == "ramp")).first()
-            cp = run.checkpoint if run is not None else None
-        if (ramp is not None and ramp.status == "running" and cp and cp.get("step_index") == ramp.index
-                and cp.get("step_state") and cp["step_state"].get("elapsed_s", 0) > 60):
-            return
+        if marker.exists() and float(marker.read_text()) == HOLD_T:
+            with db.session() as s:
+                run = s.get(Run, rid)
+                ramp = s.scalars(select(Step).where(Step.run_id == rid, Step.kind == "ramp")).first()
+                cp = run.checkpoint if run is not None else None
+                frames = sum(c.count for c in s.execute(select(FrameChunk.count).where(FrameChunk.run_id == rid)))
+            if (ramp is not None and ramp.status == "running" and cp and cp.get("step_index") == ramp.index
+                    and cp.get("step_state") and cp["step_state"].get("elapsed_s", 0) > 60 and frames > 100):
+                return
         time.sleep(0.05)
-    raise AssertionError("the run never reached the middle of its ramp")
+    raise AssertionError("the run never stood in the middle of its ramp with its data committed")
+
+
+def _assert_continuous(db, rid: int, gap) -> None:
+    """Across the outage the chamber's own ramp goes on (1 C/min: 2 C in 120 s, plus the air catching
+    up with its set point), and the probes on the gyro, with their thermal lag, move less: no jump back
+    to room temperature (23 C) or to a fresh chamber."""
+    from bench.storage.models import ProbeReadingRow, Telemetry
+
+    with db.session() as s:
+        pv = s.execute(select(Telemetry.t, Telemetry.chamber_pv).where(
+            Telemetry.run_id == rid, Telemetry.device == "chamber").order_by(Telemetry.t)).all()
+        probes = s.execute(select(ProbeReadingRow.t, ProbeReadingRow.celsius).where(
+            ProbeReadingRow.run_id == rid, ProbeReadingRow.name == "t1").order_by(ProbeReadingRow.t)).all()
+    for what, rows, tol in (("chamber PV", pv, 5.0), ("probe t1", probes, 3.0)):
+        before = [v for t, v in rows if t <= gap.t_from]
+        after = [v for t, v in rows if t >= gap.t_to]
+        assert before and after, what
+        assert abs(after[0] - before[-1]) < tol, (what, before[-3:], after[:3])
+        assert 25.0 < after[0] < 42.5, (what, after[0])        # warmer than the room, below the ramp's end
 
 
 def test_kill_mid_ramp_then_resume(tmp_path):
     url = f"sqlite:///{tmp_path / 'bench.sqlite'}"
     args = [sys.executable, "-m", "bench.cli", "run", "thermal_ramp", "--gyro", "K1", "--sim", "--speed", "200",
-            "--data-rate", "1", "--json", "--no-progress", "--db", url]
+            "--seed", "1", "--data-rate", "1", "--json", "--no-progress", "--db", url]
     for p in PARAMS:
         args += ["--param", p]
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    hold = tmp_path / "hold"
+    hold.write_text(repr(HOLD_T))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), BENCH_SIM_HOLD_FILE=str(hold))
     proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         first = proc.stdout.readline().decode()
         assert first.startswith("run "), (first, proc.stderr.read().decode()[-3000:] if proc.poll() else "")
         rid = int(first.split()[1])
         db = open_database(url)
-        _wait_mid_ramp(db, rid, proc)
+        _wait_held_mid_ramp(db, rid, proc, hold)
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
     finally:
@@ -71,7 +101,7 @@ def test_kill_mid_ramp_then_resume(tmp_path):
         status_after_kill = s.get(Run, rid).status
     assert status_after_kill == "running"       # nobody could record the end: the process died
 
-    code, out, err = cli(["resume", str(rid), "--db", url, "--json", "--no-progress"])
+    code, out, err = cli(["resume", str(rid), "--db", url, "--json", "--no-progress", "--outage", str(OUTAGE_S)])
     doc = last_json(out)
     assert code == 0 and doc["status"] == "completed", (doc, err[-3000:])
 
@@ -95,6 +125,7 @@ def test_kill_mid_ramp_then_resume(tmp_path):
     assert len(ramp_pieces) == 2 and [p.labels["piece"] for p in ramp_pieces] == [0, 1]
     # the outage lasts from the last frame before the crash to the first one after the resume
     assert interrupted[0].t_from <= ramp_pieces[1].t_start <= interrupted[0].t_to
+    _assert_continuous(db, rid, interrupted[0])
     code, out, _ = cli(["runs", "show", str(rid), "--json", "--db", url])
     show = json.loads(out)
     assert show["status"] == "completed" and any(g["reason"] == "crash_resume" for g in show["gaps"])

@@ -92,8 +92,6 @@ def export_coefficients(gyro_id: GyroPath, db: Database = Depends(get_db), _: Pr
     from api.coefficients import export_coefficients as export
     from bench.fit.firmware import NotExpressible
 
-    if not _valid_id(gyro_id):
-        raise Problem(422, "Invalid input", f"gyro id {gyro_id!r}: use 1-64 letters, digits, '.', '_' or '-'")
     options = {"px4_instance": px4_instance, "px4_device_id": px4_device_id, "ardupilot_imu": ardupilot_imu,
                "ardupilot_caltemp_c": ardupilot_caltemp_c}
     try:

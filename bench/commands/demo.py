@@ -48,7 +48,9 @@ def _free_port() -> int:
 @guarded
 def demo_command(
     directory: str = typer.Option("var/demo", "--dir", help="where the demo database and reports go"),
-    speed: float = typer.Option(3600.0, "--speed", min=1.0, help="simulated bench: bench seconds per wall second"),
+    speed: str = typer.Option("max", "--speed", help="simulated bench: at most this many bench seconds per wall "
+                              "second, or 'max' (as fast as the host can; the data are the same)"),
+    seed: int = typer.Option(0, "--seed", help="simulated bench noise seed (same seed, same demo)"),
     port: int = typer.Option(0, "--port", help="API port (0: a free one)"),
     timeout_s: float = typer.Option(600.0, "--timeout", help="give up after this many wall seconds"),
 ) -> None:
@@ -73,8 +75,15 @@ def demo_command(
     from bench.sim.scenario import Scenario
 
     scenario = Scenario.builtin("default").with_changes(effects={"warmup": WARMUP})
-    sim = SimulatedBench(speed=speed, scenario=scenario, bench_name="sim1").start()
-    worker = Worker(db, "sim1", sim.config, None, sim.clock)
+    from bench.clock import parse_speed
+    from bench.sim.bench import lockstep_clock
+
+    try:
+        pace = parse_speed(speed)
+    except ValueError as exc:
+        fail(str(exc))
+    sim = SimulatedBench(clock=lockstep_clock(pace, seed), scenario=scenario, bench_name="sim1", seed=seed).start()
+    worker = Worker(db, "sim1", sim.config, None, sim.clock, bench_state=sim)
     server = uvicorn.Server(uvicorn.Config(create_app(db, tokens={token: "admin"}), host="127.0.0.1", port=port,
                                            log_level="warning"))
     thread = threading.Thread(target=server.run, name="demo-api", daemon=True)
@@ -86,7 +95,9 @@ def demo_command(
             if time.monotonic() > deadline or not thread.is_alive():
                 fail("the API did not start")
             time.sleep(0.05)
-        typer.echo(f"service up: {base}  (simulated bench x{speed:g}, database {db_url})")
+        typer.echo(f"service up: {base}  (simulated bench in lockstep, "
+                   f"{'at most x' + format(pace, 'g') if pace else 'as fast as the host can'}, seed {seed}, "
+                   f"database {db_url})")
         http = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=30.0)
         train_id = _run(http, "thermal_ramp", TRAIN, "modelling run: +50 -> -30 C at 1 C/min", deadline)
         val_id = _run(http, "thermal_ramp", VALIDATE, "held-out run: -30 -> +50 C at 0.5 C/min", deadline)

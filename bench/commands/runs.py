@@ -175,7 +175,8 @@ def _heartbeat_loop(store, run_id: int, owner: str, engine, stop: threading.Even
             pass
 
 
-def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_progress: bool, label: str) -> str:
+def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_progress: bool, label: str,
+             bench_state=None) -> str:
     """Run (``plan`` given) or resume ``run_id`` on the real drivers; returns the engine's final status."""
     from bench.engine import Engine, QueueControl
     from bench.engine.factory import build_devices, close_devices, make_fit_hook
@@ -187,7 +188,7 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
     devices = build_devices(config, clock)
     control = QueueControl()
     engine = Engine(devices, store, clock, config, control, engine_config,
-                    make_fit_hook(db, store, latitude_deg=config.latitude_deg))
+                    make_fit_hook(db, store, latitude_deg=config.latitude_deg), bench_state=bench_state)
     stop = threading.Event()
     store.heartbeat(run_id, owner)
     threads = [threading.Thread(target=_heartbeat_loop, args=(store, run_id, owner, engine, stop), daemon=True,
@@ -249,8 +250,10 @@ def _attach_sim(path: str):
         raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
 
 
-def _sim_launch(sim, speed: float, scenario: str, chamber_transport: str) -> dict[str, Any]:
-    return {"speed": speed, "scenario": scenario, "data_rate_hz": sim.data_rate_hz,
+
+
+def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
+    return {"speed": speed, "scenario": scenario, "seed": sim.seed, "data_rate_hz": sim.data_rate_hz,
             "clock": sim.clock.to_json(), "chamber_transport": chamber_transport}
 
 
@@ -260,8 +263,11 @@ def run_command(
     procedure: str = typer.Argument(..., help="eight_position, thermal_ramp, rate_cycle, hrg_calibration, fog_startup"),
     gyro: str = typer.Option(..., "--gyro", help="ID of the gyro under test"),
     sim: bool = typer.Option(False, "--sim", help="start a simulated bench in this process"),
-    speed: float = typer.Option(3600.0, "--speed", help="simulated bench: bench seconds per wall second"),
+    speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per "
+                              "wall second, or 'max' (as fast as the host can; the data are the same)"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench: scenario name or JSON file"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="simulated bench: noise seed (default: the "
+                                       "scenario's); a seeded bench starts at a fixed bench instant"),
     data_rate: Optional[int] = typer.Option(None, "--data-rate", help="simulated gyro data rate, Hz (bench time)"),
     chamber_transport: str = typer.Option("modbus_tcp", "--chamber-transport",
                                           help="simulated bench: modbus_tcp or modbus_rtu (RTU over TCP)"),
@@ -277,7 +283,7 @@ def run_command(
 ) -> None:
     """Run a procedure on the bench (or the simulated bench) and store everything."""
     import procedures
-    from bench.clock import RealClock, make_clock
+    from bench.clock import RealClock, parse_speed
     from bench.engine import plan_summary
     from bench.engine.factory import engine_config_for
     from bench.engine.sqlstore import new_run
@@ -292,15 +298,22 @@ def run_command(
         fail(f"--chamber-transport {chamber_transport!r}: use modbus_tcp or modbus_rtu")
     bench = None
     if sim:
-        if speed <= 0:
-            fail(f"--speed must be > 0, got {speed:g}")
+        try:
+            pace = parse_speed(speed)
+        except ValueError as exc:
+            fail(str(exc))
         from bench.config import BenchConfig
-        from bench.sim.bench import SimulatedBench
+        from bench.sim.bench import SimulatedBench, lockstep_clock
 
+        lockstep = lockstep_clock(pace, seed)
+        # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
+        from bench.settings import load_settings
+
+        lockstep.hold_file = load_settings().sim_hold_file or None
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
-        procedures.check_duration(plan_summary(plan, BenchConfig(), engine_config_for(make_clock(speed))))
-        bench = SimulatedBench(speed=speed, scenario=scenario, data_rate_hz=data_rate).start()
+        procedures.check_duration(plan_summary(plan, BenchConfig(), engine_config_for(lockstep)))
+        bench = SimulatedBench(clock=lockstep, scenario=scenario, data_rate_hz=data_rate, seed=seed).start()
         config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
     elif sim_endpoints:
         config, clock = _attach_sim(sim_endpoints)
@@ -312,7 +325,7 @@ def run_command(
         procedures.check_duration(summary)
         db = _open_db(db_url)
         launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
-                  "sim": _sim_launch(bench, speed, scenario, chamber_transport) if bench else None,
+                  "sim": _sim_launch(bench, pace, scenario, chamber_transport) if bench else None,
                   "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None}
         run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
                          config_snapshot=config.model_dump(mode="json"), gyro_id=gyro, bench_name=config.name,
@@ -321,10 +334,11 @@ def run_command(
         sys.stdout.flush()
         typer.echo(f"{module.NAME} on gyro {gyro}: {summary['n_steps']} steps, about "
                    f"{summary['total_bench_h']:.2f} h of bench time"
-                   + (f" (simulated bench x{speed:g}, about {summary['total_bench_s'] / speed:.0f} s wall plus overhead)"
-                      if bench else ""), err=True)
+                   + ((f" (simulated bench in lockstep, at most x{pace:g}: at least "
+                       f"{summary['total_bench_s'] / pace:.0f} s wall)" if pace else
+                       " (simulated bench in lockstep, as fast as the host can)") if bench else ""), err=True)
         status = _execute(db, run_id, config, clock, engine_config, plan=plan, show_progress=not no_progress,
-                          label=f"run {run_id} {module.NAME}")
+                          label=f"run {run_id} {module.NAME}", bench_state=bench)
         _finish(db, run_id, status, as_json)
     finally:
         if bench is not None:
@@ -352,6 +366,8 @@ def resume_command(
     sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to this running simulated "
                                                 "bench (default: the one the run was started on)"),
     force: bool = typer.Option(False, "--force", help="resume even if the run's process looks alive"),
+    outage: Optional[float] = typer.Option(None, "--outage", min=0.0, help="simulated bench: bench seconds the "
+                                           "interruption lasted (default: its wall duration at the run's speed)"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
 ) -> None:
@@ -372,11 +388,21 @@ def resume_command(
     if sim_info:
         from bench.sim.bench import SimulatedBench
 
-        clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
-        pv = _last_chamber_pv(db, run)
-        bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
-                               data_rate_hz=int(sim_info["data_rate_hz"]),
-                               initial_air_c=float(pv) if pv is not None else 23.0).start()
+        if sim_info["clock"].get("kind") == "lockstep":
+            # a fresh lockstep clock: the engine puts the checkpointed bench state back and lets the
+            # outage pass in bench time before the run continues
+            from bench.sim.bench import lockstep_clock
+
+            clock = lockstep_clock(sim_info.get("speed"), sim_info.get("seed"))
+            clock.fixed_outage_s = outage
+            bench = SimulatedBench(clock=clock, scenario=sim_info["scenario"], seed=sim_info.get("seed"),
+                                   data_rate_hz=int(sim_info["data_rate_hz"])).start()
+        else:
+            clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
+            pv = _last_chamber_pv(db, run)
+            bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
+                                   data_rate_hz=int(sim_info["data_rate_hz"]),
+                                   initial_air_c=float(pv) if pv is not None else 23.0).start()
         config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
     elif sim_endpoints or live.get("sim_endpoints"):
         config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"])
@@ -387,10 +413,10 @@ def resume_command(
         engine_config = EngineConfig.model_validate(stored) if stored else engine_config_for(clock)
         sys.stdout.write(f"run {run}\n")
         sys.stdout.flush()
-        typer.echo(f"resuming run {run} ({procedure})" + (f" on a restarted simulated bench x{sim_info['speed']:g}"
-                                                          if sim_info else ""), err=True)
+        typer.echo(f"resuming run {run} ({procedure})" + (" on a restarted simulated bench" if sim_info else ""),
+                   err=True)
         status = _execute(db, run, config, clock, engine_config, show_progress=not no_progress,
-                          label=f"run {run} {procedure} (resumed)")
+                          label=f"run {run} {procedure} (resumed)", bench_state=bench)
         _finish(db, run, status, as_json)
     finally:
         if bench is not None:

@@ -97,7 +97,10 @@ def _tokens_or_generate() -> str:
 def serve_command(
     host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
     port: int = typer.Option(8000, "--port", min=0, max=65535, help="TCP port"),
-    speed: float = typer.Option(3600.0, "--speed", min=1.0, help="simulated bench: bench seconds per wall second"),
+    speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per wall "
+                              "second, or 'max' (as fast as the host can; the data are the same)"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="simulated bench noise seed (default: the scenario's); "
+                                       "a seeded bench starts at a fixed bench instant"),
     config: Optional[list[str]] = typer.Option(None, "--config", help="bench config JSON (repeatable); "
                                                "default: one simulated bench"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench scenario (name or JSON file)"),
@@ -126,12 +129,19 @@ def serve_command(
                 cfg, clock_doc = load_bench_file(path)
                 workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None), run_jobs=False))
         else:
-            from bench.sim.bench import SimulatedBench
+            from bench.clock import parse_speed
+            from bench.settings import load_settings
+            from bench.sim.bench import SimulatedBench, lockstep_clock
 
-            sim = SimulatedBench(speed=speed, scenario=scenario, bench_name=bench_name).start()
+            pace = parse_speed(speed)
+            clock = lockstep_clock(pace, seed)
+            # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
+            clock.hold_file = load_settings().sim_hold_file or None
+            sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
             cfg = sim.config
-            workers.append(Worker(db, cfg.name, cfg, None, sim.clock, run_jobs=False))
-            typer.echo(f"simulated bench {cfg.name!r} at {speed:g}x", err=True)
+            workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim, run_jobs=False))
+            typer.echo(f"simulated bench {cfg.name!r} in lockstep, "
+                       f"{'at most x' + format(pace, 'g') if pace else 'as fast as the host can'}", err=True)
         for w in workers:
             w.start_thread()
         analysis_worker = _start_analysis_worker(db.url, log_level, log_format)

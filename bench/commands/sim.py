@@ -20,6 +20,7 @@ def register(app: typer.Typer) -> None:
 @guarded
 def up(
     speed: float = typer.Option(3600.0, "--speed", help="bench seconds per wall second"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="noise seed (default: the scenario's)"),
     scenario: str = typer.Option("default", "--scenario", help="scenario JSON file or a built-in name"),
     endpoints_json: Optional[str] = typer.Option(None, "--endpoints-json",
                                                  help="write the endpoints and a bench config here"),
@@ -29,7 +30,9 @@ def up(
     interrupted."""
     from bench.sim.bench import SimulatedBench
 
-    bench = SimulatedBench(speed=speed, scenario=scenario).start()
+    # another process drives this bench: it keeps a free-running accelerated clock shared through the
+    # endpoints file (no lockstep across processes yet; the run's sampling summary shows late samples)
+    bench = SimulatedBench(speed=speed, scenario=scenario, seed=seed).start()
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: done.set())

@@ -7,6 +7,12 @@ and timestamped with the bench clock when taken off the line: the last frame of 
 chunk gets ``clock.now()``, earlier frames of the same chunk are back-dated by the nominal
 frame period ``1 / data_rate_hz`` (they left the device one period apart).
 
+On a lockstep clock (the simulated bench, ``bench.clock.LockstepClock``) the link registers as a
+receiver: at each new bench instant it waits until it has read every byte the simulator reports
+having written for that instant (same connection), then decodes them all at once, the last frame
+stamped with the instant and earlier ones back-dated by the frame period, so the stamps do not
+depend on how the host happened to chunk the bytes.
+
 The control loop calls ``drain()``, which never blocks.  Frames wait in a bounded but large
 queue (``queue_limit``); if the consumer falls that far behind, the oldest frames are dropped
 and counted in ``queue_overflows``.
@@ -69,10 +75,26 @@ class GyroSerialLink(BackgroundLoop):
         self._reply_lock = threading.Lock()
         self._capturing_replies = False
         self.last_error: str | None = None
+        self._lockstep = bool(getattr(clock, "lockstep", False))
+        self._rx_cond = threading.Condition()
+        self._rx_pending = bytearray()       # lockstep: bytes read but not yet decoded
+        self._rx_bytes = 0                   # bytes read on the current connection
+        self._local_addr: tuple | None = None
+        self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
+        self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
+        self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
 
     # ------------------------------------------------------------------ lifecycle
     def _before_start(self) -> None:
         self._port = self._open()
+        if self._lockstep:
+            self.clock.receive("gyro_link", self._receive_instant)
+            self.clock.serve_now()
+
+    def stop(self) -> None:
+        if self._lockstep:
+            self.clock.forget("gyro_link")
+        super().stop()
 
     def _after_stop(self) -> None:
         self._close_port()
@@ -102,8 +124,14 @@ class GyroSerialLink(BackgroundLoop):
     # ------------------------------------------------------------------ port handling
     def _open(self) -> serial.SerialBase:
         try:
-            return serial.serial_for_url(self.config.url, baudrate=self.config.baudrate,
+            port = serial.serial_for_url(self.config.url, baudrate=self.config.baudrate,
                                          timeout=self.read_timeout_s, write_timeout=2.0)
+            sock = getattr(port, "_socket", None)
+            with self._rx_cond:
+                self._rx_bytes = 0
+                self._rx_pending.clear()
+                self._local_addr = tuple(sock.getsockname()[:2]) if sock is not None else None
+            return port
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkDown(f"gyro serial link {self.config.url!r}: cannot open: {exc}") from None
 
@@ -120,7 +148,11 @@ class GyroSerialLink(BackgroundLoop):
         while not self._stop.is_set():
             port = self._port
             if port is None:
-                self._reconnect_loop(self.clock.now())
+                self._reconnect_loop(self._gap_from if self._gap_from is not None else self.clock.now())
+                self._gap_from = None
+                continue
+            if self._lockstep:              # the receiver reads, in the thread that moves the clock
+                self._stop.wait(0.05)
                 continue
             try:
                 data = port.read(65536)
@@ -156,7 +188,57 @@ class GyroSerialLink(BackgroundLoop):
                 self._reply_buf += data
                 if len(self._reply_buf) > 1 << 20:
                     del self._reply_buf[:-4096]
-        frames = self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz)
+        if self._lockstep:
+            with self._rx_cond:
+                self._rx_pending += data
+                self._rx_bytes += len(data)
+                self._rx_cond.notify_all()
+            return
+        self._enqueue(self.decoder.feed(data, self.clock.now(), 1.0 / self._rate_hz))
+
+    def _receive_instant(self, t: float, reports: dict) -> None:
+        """Lockstep receiver: read every byte the simulator wrote up to bench time ``t`` (they are
+        already in the socket buffer: the simulator served the instant first), then decode them."""
+        sent = reports.get("gyro") or {}
+        port = self._port
+        if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
+            deadline = time.monotonic() + self.receive_wait_s
+            while self._rx_bytes < sent["bytes"]:
+                try:
+                    data = port.read(sent["bytes"] - self._rx_bytes)
+                except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                    self.last_error = f"{type(exc).__name__}: {exc}"
+                    self._gap_from = self.clock.now()
+                    self._close_port()           # the reader thread reconnects
+                    break
+                if data:
+                    self._on_bytes(data)
+                elif time.monotonic() > deadline:
+                    self.receive_timeouts += 1
+                    self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
+                                       f"not received within {self.receive_wait_s:g} s")
+                    break
+        with self._rx_cond:
+            data, self._rx_pending = bytes(self._rx_pending), bytearray()
+        if data:
+            self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
+
+    def _read_now(self) -> None:
+        """Lockstep: take whatever bytes are waiting (command replies), without blocking."""
+        port = self._port
+        if port is None:
+            return
+        try:
+            port.timeout = 0
+            data = port.read(65536)
+        except (serial.SerialException, OSError, AttributeError, TypeError):
+            return
+        finally:
+            port.timeout = self.read_timeout_s
+        if data:
+            self._on_bytes(data)
+
+    def _enqueue(self, frames: list[GyroFrame]) -> None:
         if not frames:
             return
         with self._queue_lock:
@@ -184,6 +266,8 @@ class GyroSerialLink(BackgroundLoop):
                     raise LinkDown(f"gyro serial link {self.config.url!r}: write of {text!r} failed: {exc}") from None
             deadline = time.monotonic() + timeout_s
             while time.monotonic() < deadline:
+                if self._lockstep:
+                    self._read_now()
                 with self._reply_lock:
                     buf = bytes(self._reply_buf)
                 match = expect.search(buf)

@@ -5,7 +5,9 @@ Loop (one tick): drain gyro frames, read probes / telemetry when due (``Acquisit
 control, update suspension, advance the current step with *active* time (not paused, not
 suspended), checkpoint when due, sleep until the next tick.  The tick is adaptive: ``tick_s`` while
 recording / ramping / waiting for stability / moving, ``max_tick_s`` in plain soaks, shortened to
-land on a step's end; data is drained on every tick.
+land on a step's end and on the next scheduled probe read or telemetry (``Acquisition.next_due``: the
+acquisition schedule is a fixed bench-time grid, so on the simulated bench's lockstep clock every
+device is read exactly at its period); data is drained on every tick.
 
 Control: ``stop`` (status "stopping") finishes the current recording step (stops at once in any
 other step, or when paused / suspended), then safe state, final status "stopped"; ``abort`` goes to
@@ -21,14 +23,21 @@ Checkpoint (``RunStore.save_checkpoint``) after each step and every ``checkpoint
      "suspended_total_s": s, "open_suspension": {"id", "t_from", "reason"} | None,
      "stop_requested": bool, "started_t": bench_s, "progress": {...}, "finished": status | None}
 
+With a ``bench_state`` (the simulated bench: ``snapshot()`` / ``restore(snap)``) each checkpoint also
+holds ``"bench_state"``, the bench's physical state, and ``"wall_time"``.  On a lockstep clock,
+``resume`` first puts that state back at the checkpoint's bench instant and lets the outage pass in
+bench time (``clock.outage_bench_s`` of the wall outage), so the chamber and the gyro continue where
+they were instead of starting again from room temperature.
+
 ``resume(run_id)`` records the interruption as a gap, restores the commanded hardware state
 (gyro power, table orientation or rates, chamber set point; a ramp is re-issued from the current
 temperature by the ramp step) and continues the interrupted step with its remaining time.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Protocol
 
 from bench.clock import Clock
 from bench.config import BenchConfig
@@ -46,6 +55,13 @@ from bench.engine.store import RunStore
 from bench.errors import BenchError, DeviceError
 
 FitHook = Callable[[str, int, Fit, RunStore], dict[str, Any]]
+
+
+class BenchState(Protocol):
+    """A simulated bench's physical state for checkpoints (``bench.sim.bench.SimulatedBench``)."""
+
+    def snapshot(self) -> dict[str, Any]: ...
+    def restore(self, snap: dict[str, Any]) -> float: ...
 CHECKPOINT_VERSION = 1
 MIN_SLEEP_S = 1e-3
 
@@ -81,7 +97,7 @@ class RunEnded(Exception):
 class Engine:
     def __init__(self, devices: Devices, store: RunStore, clock: Clock, config: BenchConfig,
                  control: Control | None = None, engine_config: EngineConfig | None = None,
-                 fit_hook: FitHook | None = None) -> None:
+                 fit_hook: FitHook | None = None, bench_state: BenchState | None = None) -> None:
         self.devices = devices
         self.store = store
         self.clock = clock
@@ -89,6 +105,7 @@ class Engine:
         self.control = control or NoControl()
         self.cfg = engine_config or EngineConfig()
         self.fit_hook = fit_hook
+        self.bench_state = bench_state
         self.run_id = ""
         self.plan: Plan | None = None
         self.estimates: list[float] = []
@@ -130,6 +147,7 @@ class Engine:
             raise BenchError(f"run {run_id}: checkpoint version {cp.get('version')!r} is not {CHECKPOINT_VERSION}")
         if cp.get("finished"):
             raise BenchError(f"run {run_id} already ended ({cp['finished']}); nothing to resume")
+        self._restore_bench(cp)
         now = self.clock.now()
         self._setup(run_id, plan, now)
         self.hw = HardwareState.from_json(cp["hardware"])
@@ -149,6 +167,22 @@ class Engine:
                  f"{now - gap_from:.0f} s", gap_from=gap_from, gap_to=now, step_index=index)
         return self._guarded(lambda: self._start_hardware(resumed=True, index=index), index,
                              cp.get("step_state"))
+
+    def _restore_bench(self, cp: dict[str, Any]) -> None:
+        """Simulated bench on a lockstep clock: its physical state back at the checkpoint, then the
+        outage passes in bench time (see the module docstring)."""
+        jump = getattr(self.clock, "jump_to", None)
+        if jump is None:
+            return
+        snap = cp.get("bench_state")
+        if self.bench_state is not None and snap:
+            t_cp = self.bench_state.restore(snap)
+            floor = t_cp
+        else:
+            t_cp = float(cp["t"])
+            floor = max(t_cp, self.clock.now())
+        outage = self.clock.outage_bench_s(time.time() - float(cp.get("wall_time", time.time())))
+        jump(max(floor, t_cp + outage))
 
     def progress(self, now: float | None = None) -> dict[str, Any]:
         now = self.clock.now() if now is None else now
@@ -295,7 +329,7 @@ class Engine:
         deadline = ex.deadline(now)
         if deadline is not None and not ex.held:
             wake = min(wake, deadline)
-        wake = min(wake, self.next_checkpoint)
+        wake = min(wake, self.next_checkpoint, self.acq.next_due())
         self.clock.sleep(max(MIN_SLEEP_S, wake - self.clock.now()))
 
     # ---- service: data, control, suspension ---------------------------------------------------
@@ -384,6 +418,8 @@ class Engine:
             "stop_requested": self.stop_requested,
             "progress": self.progress(now),
             "finished": finished,
+            "wall_time": time.time(),
+            "bench_state": self.bench_state.snapshot() if self.bench_state is not None and not finished else None,
         })
         self.next_checkpoint = now + self.cfg.checkpoint_period_s
 

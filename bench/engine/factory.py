@@ -4,15 +4,13 @@ clock, and the fit hook that fits a procedure's declared models on the stored ru
 ``build_devices(config, clock)`` opens nothing by itself (drivers connect on first use, the gyro link
 on ``Engine`` start); ``close_devices`` closes every driver and never raises.
 
-``engine_config_for(clock)``: engine ticks are bench seconds.  With real time the defaults hold
-(1 s fine tick, 10 s soak tick).  With an accelerated clock every tick costs the same wall time
-(one drain of the gyro link, device telemetry, database calls), so the periods that only pace the
-loop are scaled to wall time: a fine tick of ``wall_tick_s`` wall seconds (0.02 s: 50 loops/s),
-telemetry every 0.05 wall s, checkpoints every 0.5 wall s, and the "no frames" timeouts to at least
-three wall seconds (the simulated gyro writes its frames in bursts, and a scheduling hiccup
-of the host must not look like a dead gyro).  Periods with a
-physical meaning (settle time after a suspension, wait-until-stable windows, ramp grace) are left
-in bench seconds.
+``engine_config_for(clock)``: engine timing in bench seconds.  Real hardware (``RealClock``) and the
+stepped test clock keep the defaults: probes every 2 s, chamber / turntable / PSU telemetry every 5 s,
+a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
+time only moves when the engine sleeps and every sample is served before it does, so the same rates
+hold at any speed; its loop ticks every 2 s (the probe period) in soaks too.  An ``AcceleratedClock``
+(a simulated bench in another process that shares no lockstep clock) keeps the defaults as well: its
+samples are late when the host is slow, which the run's ``sampling`` summary shows.
 
 ``make_fit_hook(db, store, latitude_deg=)``: the engine's ``Fit`` step calls it.  It flushes the
 run's writer, builds the run's measured-data ``Dataset`` (``bench.storage.export.run_dataset``: 1-s
@@ -28,14 +26,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from bench.clock import Clock, RealClock, SteppedClock
+from bench.clock import Clock
 from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices
 from bench.engine.steps import Fit
 from bench.errors import BenchError
 
-WALL_TICK_S = 0.02
 
 
 def build_devices(config: BenchConfig, clock: Clock) -> Devices:
@@ -65,25 +62,13 @@ def close_devices(devices: Devices) -> list[str]:
     return problems
 
 
-def engine_config_for(clock: Clock, base: EngineConfig | None = None, *,
-                      wall_tick_s: float = WALL_TICK_S) -> EngineConfig:
+def engine_config_for(clock: Clock, base: EngineConfig | None = None) -> EngineConfig:
     """Engine timing for ``clock`` (see the module docstring)."""
     cfg = base or EngineConfig()
-    speed = getattr(clock, "speed", 1.0)
-    if isinstance(clock, (RealClock, SteppedClock)) or not speed or speed <= 1.0 or speed == float("inf"):
-        return cfg
-    k = float(speed)
-    return cfg.model_copy(update={
-        "tick_s": max(cfg.tick_s, k * wall_tick_s),
-        "max_tick_s": max(cfg.max_tick_s, k * 5 * wall_tick_s),
-        "telemetry_period_s": max(cfg.telemetry_period_s, k * 0.05),
-        "probe_period_s": max(cfg.probe_period_s, k * wall_tick_s),
-        "frame_flush_s": max(cfg.frame_flush_s, k * 0.25),
-        "checkpoint_period_s": max(cfg.checkpoint_period_s, k * 0.5),
-        "frames_timeout_s": max(cfg.frames_timeout_s, k * 3.0),
-        "frames_grace_s": max(cfg.frames_grace_s, k * 3.0),
-        "ramp_grace_s": max(cfg.ramp_grace_s, k * 0.5),
-    })
+    if getattr(clock, "lockstep", False):
+        return cfg.model_copy(update={"max_tick_s": min(cfg.max_tick_s, cfg.probe_period_s),
+                                      "tick_s": min(cfg.max_tick_s, cfg.probe_period_s)})
+    return cfg
 
 
 # ---- fitting --------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import math
 from typing import Callable
 
 import numpy as np
@@ -63,13 +64,17 @@ class Acquisition:
     def tick(self, now: float, powered_since: float | None) -> None:
         self.drain(now, powered_since)
         if now >= self.next_probe:
-            self.next_probe = now + self.cfg.probe_period_s
+            self.next_probe = _next_on_grid(self.next_probe, now, self.cfg.probe_period_s)
             self.read_probes(now)
         if now >= self.next_telemetry:
-            self.next_telemetry = now + self.cfg.telemetry_period_s
+            self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
             self.read_telemetry(now)
         if len(self.buffer) >= self.cfg.frame_batch or now - self.last_flush >= self.cfg.frame_flush_s:
             self.flush(now)
+
+    def next_due(self) -> float:
+        """Bench time of the next scheduled probe read or telemetry (the engine wakes for it)."""
+        return min(self.next_probe, self.next_telemetry)
 
     def drain(self, now: float, powered_since: float | None) -> None:
         link = self.devices.gyro
@@ -197,3 +202,12 @@ class Acquisition:
             self._set("psu_link", None)
         if status is not None or table or psu_reading is not None:
             self.store.add_telemetry(self.run_id, now, status, table, psu_reading)
+
+
+def _next_on_grid(due: float, now: float, period: float) -> float:
+    """The next instant of the schedule ``due + k * period`` after ``now``: a late tick does not shift
+    the schedule (on the lockstep clock ticks are never late)."""
+    nxt = due + period
+    if nxt <= now:
+        nxt = due + (math.floor((now - due) / period) + 1) * period
+    return nxt

@@ -366,6 +366,9 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "sim": live.get("sim"),
             "steps_done": sum(1 for st in steps if st.status == StepOutcome.DONE),
         }
+    from bench.storage.sampling import sampling_summary
+
+    doc["sampling"] = sampling_summary(db, run.id)
     return jsonable(doc)
 
 

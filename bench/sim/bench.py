@@ -13,16 +13,20 @@ switches the gyro on (self-heating, warm-up) and off; the DS18B20 tree reads the
 """
 from __future__ import annotations
 
+import base64
 import json
+import os
+import pickle
 import shutil
 import tempfile
 import threading
+import zlib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench.clock import AcceleratedClock, Clock, SteppedClock
+from bench.clock import AcceleratedClock, Clock, LockstepClock, SteppedClock
 from bench.config import (BenchConfig, ChamberConfig, GyroConfig, ProbeConfig, PsuConfig, TurntableConfig)
 from bench.devices.orientation import check_geometry, rotation_about
 from bench.sim.chamber import ChamberModel, ChamberSimulator
@@ -35,6 +39,24 @@ from bench.sim.w1 import W1TreeSimulator
 
 # gyro data rate (Hz, bench time) per clock speed: keeps the frame rate on the wire a few thousand/s
 _RATES = (1000, 500, 250, 100, 50, 25, 10, 5, 1)
+
+
+# on a lockstep clock the frame rate costs host time, not accuracy: the simulated default is
+# decimated to 1 Hz (the physics integrates on its own grid; each frame is a 1-s sample)
+LOCKSTEP_DATA_RATE_HZ = 1
+# wall seconds a driver waits for a simulator's reply on the lockstep bench (see bench_config)
+LOCKSTEP_REPLY_TIMEOUT_S = 30.0
+# a seeded simulated bench starts at this bench instant (2026-01-01T00:00:00Z), so the same scenario
+# and seed give the same bench times, not only the same values
+SEEDED_EPOCH_S = 1_767_225_600.0
+
+
+def lockstep_clock(pace: float | None, seed: int | None = None) -> LockstepClock:
+    """The simulated bench's clock: paced at ``pace`` x wall at most (None: as fast as the host can),
+    starting at ``SEEDED_EPOCH_S`` when seeded, else at the current whole wall second."""
+    import time
+
+    return LockstepClock(SEEDED_EPOCH_S if seed is not None else float(int(time.time())), pace)
 
 
 def default_data_rate(speed: float) -> int:
@@ -53,16 +75,23 @@ class SimulatedBench:
     def __init__(self, *, speed: float = 3600.0, scenario: str | Scenario = "default",
                  clock: Clock | None = None, data_rate_hz: int | None = None, w1_root: str | None = None,
                  bench_name: str = "sim1", latitude_deg: float | None = None,
-                 initial_air_c: float = 23.0) -> None:
+                 initial_air_c: float = 23.0, seed: int | None = None) -> None:
         self.clock = clock or AcceleratedClock(speed)
         self.scenario = scenario if isinstance(scenario, Scenario) else _load_scenario(scenario)
         if latitude_deg is not None:
             self.scenario = self.scenario.with_changes(latitude_deg=latitude_deg)
+        if seed is not None:
+            self.scenario = self.scenario.with_changes(seed=int(seed))
+        self.seed = self.scenario.seed
+        self.lockstep = isinstance(self.clock, LockstepClock)
         speed_eff = 1e6 if isinstance(self.clock, SteppedClock) else self.clock.speed
-        self.data_rate_hz = data_rate_hz or default_data_rate(speed_eff)
+        self.data_rate_hz = data_rate_hz or (LOCKSTEP_DATA_RATE_HZ if self.lockstep else default_data_rate(speed_eff))
         self.bench_name = bench_name
         self._own_w1 = w1_root is None
-        self.w1_root = Path(w1_root or tempfile.mkdtemp(prefix="bench-w1-"))
+        # a memory file system when there is one: sysfs is memory too, and a disk journal makes
+        # every rewrite cost milliseconds
+        shm = "/dev/shm" if Path("/dev/shm").is_dir() and os.access("/dev/shm", os.W_OK) else None
+        self.w1_root = Path(w1_root or tempfile.mkdtemp(prefix="bench-w1-", dir=shm))
         base = BenchConfig()
         self.geometry = base.turntable.geometry
         self._outer_axis, self._inner_axis, self._mounting = check_geometry(self.geometry)   # validated once
@@ -126,10 +155,16 @@ class SimulatedBench:
         self.chamber.start()
         for server in (self.turntable, self.psu, self.gyro, self.w1):
             server.start()
+        if self.lockstep:
+            self.clock.serve("w1", self.w1.serve)
+            self.clock.serve("gyro", self.gyro.serve)
         self.started = True
         return self
 
     def stop(self) -> None:
+        if self.lockstep:
+            self.clock.forget("w1")
+            self.clock.forget("gyro")
         for server in (self.w1, self.gyro, self.psu, self.turntable, self.chamber):
             try:
                 server.stop()
@@ -145,6 +180,34 @@ class SimulatedBench:
     def __exit__(self, *exc: Any) -> None:
         self.stop()
 
+    # ---------------------------------------------------------------- continuity
+    def snapshot(self) -> dict[str, Any]:
+        """The bench's physical state at the current bench instant (chamber air and controller, table,
+        supply, the gyro's thermal network and noise processes, the probes' last conversions, the gyro
+        line's frame counter), for a run checkpoint.  ``restore`` puts it back."""
+        with self._lock:
+            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}
+            return {"version": SNAPSHOT_VERSION, "t": self.clock.now(), "scenario": self.scenario.name,
+                    "seed": self.seed,
+                    "state": base64.b64encode(zlib.compress(pickle.dumps(parts, protocol=5))).decode("ascii")}
+
+    def restore(self, snap: dict[str, Any]) -> float:
+        """Put back a ``snapshot`` (taken by this program on a bench of the same scenario); returns its
+        bench time.  The caller then moves the clock on (``LockstepClock.jump_to``)."""
+        if snap.get("version") != SNAPSHOT_VERSION:
+            raise ValueError(f"simulated bench snapshot version {snap.get('version')!r} is not {SNAPSHOT_VERSION}")
+        parts = pickle.loads(zlib.decompress(base64.b64decode(snap["state"])))
+        with self._lock:
+            for name, obj in self._state_objects().items():
+                if name not in parts:
+                    raise ValueError(f"simulated bench snapshot has no {name!r} state")
+                vars(obj).update(parts[name])
+        return float(snap["t"])
+
+    def _state_objects(self) -> dict[str, Any]:
+        return {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
+                "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+
     # ---------------------------------------------------------------- addresses
     @property
     def endpoints(self) -> dict[str, Any]:
@@ -159,6 +222,7 @@ class SimulatedBench:
             "gyro_frame": "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a",
             "gyro_data_rate_hz": self.data_rate_hz,
             "clock": self.clock.to_json(),
+            "seed": self.seed,
         }
 
     def bench_config(self, *, chamber_transport: str = "modbus_tcp") -> BenchConfig:
@@ -166,17 +230,22 @@ class SimulatedBench:
         addresses differ."""
         e = self.endpoints
         chamber_addr = e["chamber_modbus_tcp"] if chamber_transport == "modbus_tcp" else e["chamber_modbus_rtu"]
+        # in lockstep bench time a reply that is late in wall time only means the host is busy (the
+        # simulators answer at the same bench instant whatever the delay): wall timeouts are generous,
+        # so load slows the run instead of changing what it records
+        reply_s = LOCKSTEP_REPLY_TIMEOUT_S if self.lockstep else None
         return BenchConfig(
             name=self.bench_name,
             latitude_deg=self.scenario.latitude_deg,
             chamber=ChamberConfig(transport=chamber_transport, address=chamber_addr, inter_frame_delay_s=0.0,
-                                  baudrate=115200, timeout_s=2.0),
-            turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry),
+                                  baudrate=115200, timeout_s=reply_s or 2.0),
+            turntable=TurntableConfig(url=e["turntable"], geometry=self.geometry,
+                                      **({"timeout_s": reply_s} if reply_s else {})),
             gyro=GyroConfig(url=e["gyro"], frame=e["gyro_frame"], data_rate_hz=self.data_rate_hz,
                             channels=tuple(self.scenario.channels),
                             channel_probes=self.scenario.channel_probe_map()),
             probes=ProbeConfig(w1_root=e["w1_root"], probes=dict(self.serials)),
-            psu=PsuConfig(url=e["psu"]),
+            psu=PsuConfig(url=e["psu"], **({"timeout_s": reply_s} if reply_s else {})),
         )
 
     @property
@@ -191,6 +260,25 @@ class SimulatedBench:
         tmp.replace(path)
 
 
+SNAPSHOT_VERSION = 1
+# a snapshot keeps each object's plain state, not its wiring (locks, threads, sockets, the clock,
+# other devices, callbacks) nor caches; for the servers only the fields named here
+_WIRING = (type(threading.Lock()), type(threading.RLock()), threading.Event, threading.Thread,
+           threading.Condition)
+_SKIP = ("_cache", "inputs", "clock", "bench", "source", "faults", "sent_log")
+_SERVER_STATE = {
+    "w1": ("_retained", "last_update_t", "updates"),
+    "gyro": ("_sequence", "_next_index", "_base_t", "_rate", "_config_mode", "overrun_frames"),
+}
+
+
+def _fields(name: str, obj: Any) -> dict[str, Any]:
+    if name in _SERVER_STATE:
+        return {key: getattr(obj, key) for key in _SERVER_STATE[name]}
+    return {key: value for key, value in vars(obj).items()
+            if key not in _SKIP and not isinstance(value, _WIRING) and not callable(value)}
+
+
 class _BenchInputs(PhysicsInputs):
     """The physics' view of the other devices, evaluated for a whole batch of times at once.
 
@@ -200,48 +288,48 @@ class _BenchInputs(PhysicsInputs):
     every model once per gyro sample instead costs more than the gyro physics itself at x3600.
     """
 
-    HISTORY = 4096
+    HISTORY = 512           # states kept (each batch interpolates within its own short span)
 
     def __init__(self, bench: "SimulatedBench") -> None:
         super().__init__(bench._air_c, bench._body_to_level, bench._table_rate_body, bench._powered,
                          bench._power_on_time)
         self.bench = bench
-        self._t: list[float] = []
-        self._air: list[float] = []
-        self._angles: list[tuple[float, float]] = []
-        self._rates: list[tuple[float, float]] = []
-        self._power: list[tuple[bool, float]] = []     # (on, on_since or nan)
+        self._n = 0
+        # columns: t, air, outer, inner, w_outer, w_inner, on, on_since (nan when off)
+        self._hist = np.empty((self.HISTORY, 8))
 
     def _record(self, t: float) -> None:
         b = self.bench
-        if self._t and t <= self._t[-1]:
+        if self._n and t <= self._hist[self._n - 1, 0]:
             return
         air = b._air_c(t)
-        angles = b._angles(t)
+        outer, inner = b._angles(t)
         r = b.table_model.rates()
-        rates = (r[b.geometry.outer_axis_number - 1], r[b.geometry.inner_axis_number - 1])
         on = b._powered(t)
         since = b.psu_model.on_since if on else None
-        self._t.append(t)
-        self._air.append(air)
-        self._angles.append(angles)
-        self._rates.append(rates)
-        self._power.append((on, np.nan if since is None else float(since)))
-        if len(self._t) > self.HISTORY:
-            for buf in (self._t, self._air, self._angles, self._rates, self._power):
-                del buf[: len(buf) - self.HISTORY // 2]
+        if self._n == self.HISTORY:
+            keep = self.HISTORY // 2
+            self._hist[:keep] = self._hist[self._n - keep:self._n]
+            self._n = keep
+        self._hist[self._n] = (t, air, outer, inner, r[b.geometry.outer_axis_number - 1],
+                               r[b.geometry.inner_axis_number - 1], float(on),
+                               np.nan if since is None else float(since))
+        self._n += 1
 
     def batch(self, times: np.ndarray) -> InputBatch:
         times = np.asarray(times, dtype=float)
         self._record(float(times[-1]))
-        hist_t = np.asarray(self._t)
-        air = np.interp(times, hist_t, np.asarray(self._air))
-        ang = np.unwrap(np.radians(np.asarray(self._angles)), axis=0)
+        h = self._hist[:self._n]
+        # the span that matters: from the last state at or before the batch's first time
+        first = max(0, int(np.searchsorted(h[:, 0], times[0], side="right")) - 1)
+        h = h[first:]
+        hist_t = h[:, 0]
+        air = np.interp(times, hist_t, h[:, 1])
+        ang = np.unwrap(np.radians(h[:, 2:4]), axis=0)
         outer = np.degrees(np.interp(times, hist_t, ang[:, 0]))
         inner = np.degrees(np.interp(times, hist_t, ang[:, 1]))
-        rates = np.asarray(self._rates)
-        w_outer = np.interp(times, hist_t, rates[:, 0])
-        w_inner = np.interp(times, hist_t, rates[:, 1])
+        w_outer = np.interp(times, hist_t, h[:, 4])
+        w_inner = np.interp(times, hist_t, h[:, 5])
         b = self.bench
         r_outer = _rotations(b._outer_axis, outer)
         r_inner = _rotations(b._inner_axis, inner)
@@ -251,8 +339,8 @@ class _BenchInputs(PhysicsInputs):
         table_rate_body = np.einsum("nji,nj->ni", body, omega_level)
         # power: the state recorded at or after each time; switched on from the PSU's switch-on time
         k = np.clip(np.searchsorted(hist_t, times, side="left"), 0, len(hist_t) - 1)
-        power = np.asarray([p[0] for p in self._power])[k]
-        since = np.asarray([p[1] for p in self._power])[k]
+        power = h[k, 6] > 0.5
+        since = h[k, 7]
         powered = power & ~(times < since)
         return InputBatch(air_c=air, body_to_level=body, table_rate_body_dps=table_rate_body,
                           powered=powered, power_on_time=np.where(powered, since, np.nan))

@@ -7,6 +7,11 @@ whatever the clock: with an accelerated clock many frames become due per wall se
 written in batches; with a ``SteppedClock`` every frame up to ``clock.now()`` is written.  For
 each frame the source gets ``advance_to(t)`` then ``sample(t)`` with the same, non-decreasing t.
 
+On a lockstep clock (``bench.clock.LockstepClock``) the thread produces nothing by itself: the
+clock calls ``serve(t)`` at each bench instant, which accepts a waiting client, writes every frame
+due up to ``t`` and reports ``{"peer": client address, "bytes": bytes written on this connection}``
+so the driver can wait for exactly those bytes.
+
 Budget: frames per *wall* second = data_rate_hz x clock speed.  The encoder makes ~100k frames/s
 on one core, so keep that product well below (e.g. 1 Hz at speed 3600).  If the simulator
 falls more than ``max_backlog_frames`` behind, it skips the excess: the device's sequence
@@ -152,9 +157,12 @@ class GyroStreamSimulator:
         self._sequence = 0
         self._next_index = 0
         self._base_t = 0.0
-        self._lock = threading.Lock()
+        self._lock = threading.RLock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._lockstep = bool(getattr(clock, "lockstep", False))
+        self._client_bytes = 0           # bytes written on the current client connection
+        self._client_peer: tuple | None = None
         self._listener: socket.socket | None = None
         self._client: socket.socket | None = None
         self._pty_master: int | None = None
@@ -244,6 +252,7 @@ class GyroStreamSimulator:
                 self._client.close()
             finally:
                 self._client = None
+                self._client_peer = None
                 self._cmd_buf = b""
 
     # ------------------------------------------------------------------ main loop
@@ -274,7 +283,20 @@ class GyroStreamSimulator:
                     self._read_commands_socket()
                 elif r == self._pty_master:
                     self._read_commands_pty()
-            self._produce_due_frames()
+            if not self._lockstep:
+                self._produce_due_frames()
+
+    def serve(self, t: float) -> dict:
+        """Lockstep: put every frame due up to bench time ``t`` on the line (see module docstring)."""
+        if self.error is not None:
+            raise RuntimeError(f"gyro simulator stopped: {self.error}") from self.error
+        with self._lock:
+            if self._client is None and self._listener is not None:
+                ready, _, _ = select.select([self._listener], [], [], 0)
+                if ready:
+                    self._accept()
+            self._produce_due_frames_locked(t)
+            return {"peer": self._client_peer, "bytes": self._client_bytes}
 
     def _service_link(self) -> None:
         if self.faults.take_drop_request():
@@ -288,11 +310,19 @@ class GyroStreamSimulator:
                 pass                               # port busy: try again next loop
 
     def _accept(self) -> None:
+        with self._lock:
+            self._accept_locked()
+
+    def _accept_locked(self) -> None:
+        if self._listener is None:
+            return
         try:
-            conn, _ = self._listener.accept()
+            conn, peer = self._listener.accept()
         except (BlockingIOError, OSError):
             return
         self._close_client()
+        self._client_peer = tuple(peer[:2])
+        self._client_bytes = 0
         conn.setblocking(True)
         conn.settimeout(2.0)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -353,7 +383,8 @@ class GyroStreamSimulator:
             return f"ERROR,UNKNOWN COMMAND {text}"
 
     def _write_reply(self, reply: str) -> None:
-        self._write_bytes((reply + "\r\n").encode("ascii"))
+        with self._lock:
+            self._write_bytes((reply + "\r\n").encode("ascii"))
 
     def _write_bytes(self, data: bytes) -> bool:
         if self.transport == "pty":
@@ -373,6 +404,7 @@ class GyroStreamSimulator:
         except OSError:
             self._close_client()
             return False
+        self._client_bytes += len(data)
         return True
 
     # ------------------------------------------------------------------ frames

@@ -21,6 +21,10 @@ after ``source.advance_to(clock.now())``.  Files are rewritten at most once per
 (20 ms) of wall time; each file is written to a temporary name and ``os.replace``-d, so a reader
 never sees half a file.
 
+On a lockstep clock (``bench.clock.LockstepClock``) there is no refresh thread: the clock calls
+``serve(t)`` at each bench instant and the files are rewritten then (once per ``conversion_s``), so a
+reader at bench time t sees the conversion finished at or just before t whatever the host load.
+
 Faults (``sim.faults``, a ``W1Faults``): ``set(name, kind, duration_s=None)`` with kind one of
 
 - ``"crc"``: bus open: line 1 ``ff`` x 9 ``crc=c9 NO``, line 2 last good bytes ``t=-62``;
@@ -145,6 +149,7 @@ class W1TreeSimulator(BackgroundLoop):
         self.error: Exception | None = None      # set if the simulator thread died
         self.last_update_t: float | None = None
         self._retained = {name: bytes(9) for name in self.probes}
+        self._written: dict[str, str] = {}          # last w1_slave text written per probe
         self._lock = threading.Lock()
 
     def device_dir(self, name: str) -> Path:
@@ -153,6 +158,17 @@ class W1TreeSimulator(BackgroundLoop):
     def _before_start(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
         self.update()
+
+    def start(self) -> None:
+        if getattr(self.clock, "lockstep", False):    # the clock calls serve() at each bench instant
+            self._before_start()
+            return
+        super().start()
+
+    def serve(self, t: float) -> None:
+        """Lockstep: a new conversion when ``conversion_s`` has passed since the last one."""
+        if self.last_update_t is None or t - self.last_update_t >= self.conversion_s - 1e-9:
+            self.update()
 
     def _run(self) -> None:
         try:
@@ -183,6 +199,7 @@ class W1TreeSimulator(BackgroundLoop):
         directory = self.device_dir(name)
         if fault == FAULT_VANISHED:
             shutil.rmtree(directory, ignore_errors=True)
+            self._written.pop(name, None)
             return
         current = {
             None: None,
@@ -196,6 +213,8 @@ class W1TreeSimulator(BackgroundLoop):
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
+        if self._written.get(name) == text and directory.is_dir():
+            return              # same conversion result: the files already say exactly this
         directory.mkdir(parents=True, exist_ok=True)
         _atomic_write(directory / "w1_slave", text)
         temperature_file = directory / "temperature"
@@ -203,6 +222,7 @@ class W1TreeSimulator(BackgroundLoop):
             _atomic_write(temperature_file, f"{millidegrees(raw_temperature(current))}\n")
         else:
             temperature_file.unlink(missing_ok=True)
+        self._written[name] = text
 
 
 def _atomic_write(path: Path, text: str) -> None:

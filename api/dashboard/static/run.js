@@ -73,6 +73,7 @@ function renderSummary(run) {
     document.getElementById(`btn-${command}`).disabled = !spec.allowed.includes(run.status);
   }
   renderLatest(run.latest || {});
+  renderSampling(run.sampling);
   renderSteps(run);
   document.getElementById("params-json").textContent = JSON.stringify(run.parameters, null, 2);
 }
@@ -98,6 +99,21 @@ function renderLatest(latest) {
   if (latest.turntable) rows.push(["Turntable", `axis 1 ${fmtNum(latest.turntable.axis1_deg)}°, axis 2 ${fmtNum(latest.turntable.axis2_deg)}°`]);
   if (latest.psu) rows.push(["Power supply", `${latest.psu.on ? "on" : "off"}, ${fmtNum(latest.psu.volts)} V, ${fmtNum(latest.psu.amps)} A`]);
   document.getElementById("latest").replaceChildren(rows.length ? dl(rows) : el("p.muted", "No readings yet."));
+}
+
+function renderSampling(sampling) {
+  // readings and intervals per device, in bench seconds (GET /runs/{id} "sampling")
+  const devices = [["probes", "Probes (bus reads)"], ["chamber", "Chamber"], ["turntable", "Turntable"], ["psu", "Power supply"], ["gyro", "Gyro frames"]];
+  const rows = devices.filter(([key]) => sampling && sampling[key]).map(([key, label]) => {
+    const d = sampling[key];
+    return el("tr", el("td", label), el("td.num", String(d.readings)),
+      el("td.num", d.median_interval_s === null ? "–" : fmtNum(d.median_interval_s, 3)),
+      el("td.num", d.max_interval_s === null ? "–" : fmtNum(d.max_interval_s, 3)));
+  });
+  document.getElementById("sampling").replaceChildren(rows.length
+    ? el("table#sampling-table", el("thead", el("tr", ["Device", "Readings", "Median interval (bench s)", "Max interval (bench s)"].map((h) => el("th", h)))),
+      el("tbody", rows))
+    : el("p.muted", "No readings yet."));
 }
 
 function renderSteps(run) {
@@ -298,6 +314,7 @@ function build() {
     plotCard("probes", "Probe temperatures (°C)"),
     plotCard("gyro", "Gyro output, 1-s means (deg/h)"),
     el("p#data-info.muted"),
+    el("div.card", el("h2", "Sampling"), el("div#sampling")),
     el("div.card", el("h2", "Steps"), el("div#steps")),
     el("div.card", el("h2", "Parameters"), el("pre#params-json")));
   const xLabel = "bench time since the first recorded second (h)";
