@@ -120,12 +120,17 @@ def latest_readings(session: Session, db: Database, run_id: int) -> dict[str, An
     if cur is not None and cur.t_last is not None:
         gyro: dict[str, Any] = {"t_last_frame": cur.t_last, "frames": cur.next_index}
         try:
+            from bench.storage.export import dph_per_unit, gyro_units
             from bench.storage.reader import second_means
             sm = second_means(db, run_id, t_from=cur.t_last - 3.0, t_to=cur.t_last)
-            if len(sm.time):
-                gyro["mean_1s"] = {"t": float(sm.time[-1]), "output_unit": "device units (see bench config)",
-                                   "gyro": [finite(float(v)) for v in sm.gyro[-1]],
-                                   "temperature_c": finite(float(sm.temperature_c[-1]))}
+            rows = np.flatnonzero(np.isfinite(np.asarray(sm.gyro, float)).any(axis=1)) if len(sm.time) else []
+            if len(rows):                              # the newest second that has a value (not a partial one)
+                units = gyro_units(db, run_id)
+                scale = dph_per_unit(units)            # deg/h, as the plots and the exports show it
+                last = int(rows[-1])
+                gyro["mean_1s"] = {"t": float(sm.time[last]), "output_unit": "deg/h" if scale else units,
+                                   "gyro": [finite(float(v) * (scale or 1.0)) for v in sm.gyro[last]],
+                                   "temperature_c": finite(float(sm.temperature_c[last]))}
         except Exception as exc:  # noqa: BLE001 - the summary is optional; report why it is missing
             gyro["mean_1s_error"] = f"{type(exc).__name__}: {exc}"
         out["gyro"] = gyro

@@ -11,8 +11,11 @@ command -v socat  >/dev/null 2>&1 || need_apt+=(socat)
 command -v chromium >/dev/null 2>&1 || need_apt+=(chromium chromium-driver)   # dashboard browser tests
 if [ ${#need_apt[@]} -gt 0 ]; then
   if [ "$(id -u)" = "0" ]; then SUDO=""; else SUDO="sudo"; fi
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_apt[@]}" >/dev/null
+  # another apt/dpkg process (unattended upgrades, a second install) may hold the lock: wait for it
+  # up to APT_LOCK_WAIT_S seconds (default 300) instead of failing at once
+  lock_wait=${APT_LOCK_WAIT_S:-300}
+  $SUDO apt-get -o DPkg::Lock::Timeout="$lock_wait" update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get -o DPkg::Lock::Timeout="$lock_wait" install -y -qq "${need_apt[@]}" >/dev/null
 fi
 
 PY=${PYTHON:-python3}

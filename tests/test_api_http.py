@@ -216,6 +216,8 @@ def test_import_fit_accept_coefficients(env):
     assert fit["channels"]["x"]["coefficients"]["A1"] == pytest.approx(0.4, abs=0.01)
     assert fit["channels"]["y"]["coefficients"]["A1"] == pytest.approx(-0.2, abs=0.01)
     assert fit["channels"]["x"]["metrics"]["validation"]["rms_dph"] < 0.1
+    assert set(fit["channels"]["x"]["metrics"]["validation"]) >= {
+        "validation_std100_dph", "validation_rms_dph", "validation_coverage", "validation_all_std100_dph"}
     # not accepted yet: no coefficients, but the version can be asked for
     is_problem(c.get("/gyros/G-100/coefficients", headers=VIEWER), 404)
     v1 = c.get("/gyros/G-100/coefficients?model=static&version=1", headers=VIEWER).json()
@@ -258,8 +260,9 @@ def test_import_fit_accept_coefficients(env):
 def test_close_loop_job(env):
     db, c = env
     from bench.commands.service import import_dataset
-    train = import_dataset(db, synthetic_dataset(seed=3), "G-200")
-    val = import_dataset(db, synthetic_dataset(seed=4), "G-200")
+    # close-loop needs at least 3000 s of training data (30 blocks of 100 s)
+    train = import_dataset(db, synthetic_dataset(n=4000, seed=3), "G-200")
+    val = import_dataset(db, synthetic_dataset(n=4000, seed=4), "G-200")
     body = {"model": "t1", "train_run_id": train, "validation_run_id": val}
     is_problem(c.post("/close-loop", json={**body, "validation_run_id": train}, headers=OPERATOR), 409)
     r = c.post("/close-loop", json=body, headers=OPERATOR)
@@ -275,6 +278,9 @@ def test_close_loop_job(env):
     assert doc["report_url"] == f"/close-loop/{aid}/report"
     page = c.get(doc["report_url"], headers=VIEWER)         # stored once by the job, served as it is
     assert page.status_code == 200 and page.text.lstrip().lower().startswith("<!doctype html")
+    for part in ("before", "after"):
+        assert set(doc["result"]["channels"]["x"][part]) >= {
+            "validation_std100_dph", "validation_rms_dph", "validation_coverage", "validation_all_std100_dph"}
     is_problem(c.get("/close-loop/9999", headers=VIEWER), 404)
 
 

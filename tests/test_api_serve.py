@@ -82,3 +82,31 @@ def test_serve_simulated_bench_end_to_end(tmp_path, database_url):
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_serve_removes_its_w1_tree_on_sigint_and_sigterm(tmp_path, sig):
+    port = free_port()
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "BENCH_DATABASE_URL"}
+    env.update(BENCH_TOKENS=TOKENS_TEXT, TMPDIR=str(tmp))           # the simulated w1 tree goes under TMPDIR
+    log = open(tmp_path / "serve.log", "wb")
+    proc = subprocess.Popen([BENCH, "serve", "--port", str(port), "--speed", "200", "--log-level", "warning"],
+                            cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        def online():
+            try:
+                return httpx.get(f"http://127.0.0.1:{port}/benches", headers=VIEWER, timeout=2).json()["benches"]
+            except httpx.HTTPError:
+                return False
+        wait_for(online, 30, "bench serve up", interval=0.2)
+        assert list(tmp.glob("bench-w1-*")), "the simulated bench's w1 tree is not under TMPDIR"
+        proc.send_signal(sig)
+        code = proc.wait(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert code in (0, 128 + sig, -sig, 1), code
+    assert list(tmp.glob("bench-w1-*")) == [], (tmp_path / "serve.log").read_text()[-2000:]

@@ -252,7 +252,7 @@ def test_bench_fit_tc_formula_on_csv_files_per_channel(tmp_path):
     res = runner.invoke(app, ["fit", "tc + tc^2 + tc^3 + dtc", str(tmp_path / "train.csv"), str(tmp_path / "val.csv"),
                               "--json", str(out)])
     assert res.exit_code == 0, res.output
-    assert "y (probe t2): train rms" in res.output
+    assert "y (probe t2): training RMS " in res.output
     doc = json.loads(out.read_text())
     for ch in "xyz":
         entry = doc["channels"][ch]

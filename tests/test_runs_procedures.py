@@ -12,7 +12,7 @@ from sqlalchemy import select
 from bench.fit.csvio import read_csv
 from bench.storage.db import open_database
 from bench.storage.models import FrameChunk, Segment, Step
-from tests.test_runs_support import cli, last_json
+from tests.test_runs_support import cli
 
 SPEED = "600"
 
@@ -42,8 +42,8 @@ def _run(name: str, url: str) -> dict:
     for p in SHORT[name]:
         args += ["--param", p]
     code, out, err = cli(args)
-    assert out.splitlines()[0].startswith("run "), out
-    doc = last_json(out)
+    doc = json.loads(out)                # --json: stdout is exactly one JSON object
+    assert f"run {doc['run_id']}\n" in err, err[-2000:]
     assert code == 0 and doc["status"] == "completed", (doc, err[-2000:])
     return doc
 

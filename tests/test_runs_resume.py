@@ -82,7 +82,9 @@ def test_kill_mid_ramp_then_resume(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT), BENCH_SIM_HOLD_FILE=str(hold))
     proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        first = proc.stdout.readline().decode()
+        first = proc.stderr.readline().decode()      # with --json, "run <ID>" goes to stderr
+        while first and not first.startswith("run "):
+            first = proc.stderr.readline().decode()
         assert first.startswith("run "), (first, proc.stderr.read().decode()[-3000:] if proc.poll() else "")
         rid = int(first.split()[1])
         db = open_database(url)

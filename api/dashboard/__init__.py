@@ -10,8 +10,10 @@ draws its plots with the small canvas plotter in ``static/plot.js``.  Pages:
 * ``/ui/runs/{id}``          one run: state, pause / resume / stop / abort, live plots (``/runs/{id}/data``,
                              SSE ``/runs/{id}/events``), events
 * ``/ui/gyros``, ``/ui/gyros/{gyro_id}``   coefficients (``/gyros/{id}/coefficients``) and fit versions
+* ``/ui/fits``                every fit version, filtered by gyro, model and date (``GET /fits``)
 * ``/ui/fits/{id}``          one fit version and its HTML report (``/fits/{id}/report``)
-* ``/ui/close-loop``, ``/ui/close-loop/{id}``   start a close-the-loop analysis, read its report
+* ``/ui/close-loop``, ``/ui/close-loop/{id}``   past analyses filtered by gyro, model and date (``GET
+                             /close-loop``), start one, read its report
 
 Include with ``app.include_router(api.dashboard.router)``.  The routes are left out of the OpenAPI
 document; the pages themselves need no token (they hold no data), the API calls they make do.
@@ -34,6 +36,7 @@ PAGES = {
     "start": ("Start a run", "start.js"),
     "run": ("Run", "run.js"),
     "gyro": ("Gyro coefficients", "gyro.js"),
+    "fits": ("Fits", "fits.js"),
     "fit": ("Fit", "fit.js"),
     "closeloop": ("Close the loop", "closeloop.js"),
 }
@@ -78,7 +81,8 @@ def _page_route(page: str, with_id: bool):
 
 # path -> (page script, path ends in an integer id)
 _ROUTES = {"/": ("overview", False), "/start": ("start", False), "/runs/{item_id}": ("run", True),
-         "/gyros": ("gyro", False), "/gyros/{gyro_id}": ("gyro", False), "/fits/{item_id}": ("fit", True),
+         "/gyros": ("gyro", False), "/gyros/{gyro_id}": ("gyro", False), "/fits": ("fits", False),
+         "/fits/{item_id}": ("fit", True),
          "/close-loop": ("closeloop", False), "/close-loop/{item_id}": ("closeloop", True)}
 for _path, (_name, _with_id) in _ROUTES.items():
     router.add_api_route(_path, _page_route(_name, _with_id), methods=["GET"], response_class=HTMLResponse)

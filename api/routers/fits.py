@@ -7,6 +7,8 @@ the id of any of those rows and answers with the whole version.
 """
 from __future__ import annotations
 
+import datetime as dt
+
 from typing import Any, Literal
 
 from fastapi import APIRouter, Depends, Query, Request
@@ -120,6 +122,93 @@ def gyro_fits(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = 
         for r in rows:
             groups.setdefault((r.model, r.version), []).append(r)
         return {"gyro_id": gyro_id, "fits": [_group_doc(g, full=False) for g in groups.values()]}
+
+
+# ------------------------------------------------------------------------------------ listings
+def _day_bounds(date_from: dt.date | None, date_to: dt.date | None) -> tuple[dt.datetime | None, dt.datetime | None]:
+    """[from 00:00 UTC, the day after ``date_to`` 00:00 UTC): both days included."""
+    lo = dt.datetime.combine(date_from, dt.time(), dt.timezone.utc) if date_from else None
+    hi = dt.datetime.combine(date_to + dt.timedelta(days=1), dt.time(), dt.timezone.utc) if date_to else None
+    return lo, hi
+
+
+def _metric(row: Fit, part: str, name: str) -> float | None:
+    value = (((row.result or {}).get("metrics") or {}).get(part) or {}).get(name)
+    return value if isinstance(value, (int, float)) else None
+
+
+@router.get("/fits", summary="Stored fit versions, newest first, filtered by gyro, model and creation date")
+def list_fits(db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+              gyro_id: str | None = Query(None, min_length=1, max_length=64),
+              model: str | None = Query(None, min_length=1, max_length=300),
+              date_from: dt.date | None = Query(None, description="created on or after this day (UTC)"),
+              date_to: dt.date | None = Query(None, description="created on or before this day (UTC)"),
+              limit: int = Query(100, ge=1, le=1000)):
+    """One entry per version (gyro, model, version) with its channels' training and validation errors."""
+    lo, hi = _day_bounds(date_from, date_to)
+    stmt = select(Fit)
+    if gyro_id is not None:
+        stmt = stmt.where(Fit.gyro_id == gyro_id)
+    if model is not None:
+        stmt = stmt.where(Fit.model == model)
+    if lo is not None:
+        stmt = stmt.where(Fit.created_at >= lo)
+    if hi is not None:
+        stmt = stmt.where(Fit.created_at < hi)
+    with db.session() as s:
+        groups: dict[tuple[str, str, int], list[Fit]] = {}
+        for r in s.scalars(stmt.order_by(Fit.created_at.desc(), Fit.id.desc())):
+            key = (r.gyro_id, r.model, r.version)
+            if key not in groups and len(groups) >= limit:
+                break
+            groups.setdefault(key, []).append(r)
+        out = []
+        for rows in groups.values():
+            doc = _group_doc(rows, full=False)
+            doc["validation_run_ids"] = (rows[0].result or {}).get("validation_run_ids") or []
+            for r in rows:
+                doc["channels"][r.channel].update(
+                    train_rms_dph=_metric(r, "train", "rms_dph"), train_std100_dph=_metric(r, "train", "std100_dph"),
+                    validation_rms_dph=_metric(r, "validation", "rms_dph"),
+                    validation_std100_dph=_metric(r, "validation", "std100_dph"))
+            out.append(doc)
+    return {"fits": out}
+
+
+def _analysis_summary(a: Analysis) -> dict[str, Any]:
+    """An analysis without its full result: per channel the verdict, the effects added and the
+    validation std of 100-s means before and after."""
+    doc = {k: v for k, v in _job_doc(a).items() if k != "result"}
+    doc["model"] = (a.request or {}).get("model")
+    channels = {}
+    for ch, r in ((a.result or {}).get("channels") or {}).items():
+        channels[ch] = {"verdict": r.get("verdict"), "effects_added": [e.get("kind") for e in r.get("effects_added") or []],
+                        "before_validation_std100_dph": (r.get("before") or {}).get("validation_std100_dph"),
+                        "after_validation_std100_dph": (r.get("after") or {}).get("validation_std100_dph"),
+                        "noise_floor_dph": r.get("noise_floor_dph")}
+    doc["channels"] = channels
+    return doc
+
+
+@router.get("/close-loop", summary="Close-the-loop analyses, newest first, filtered by gyro, model and date")
+def list_close_loop(db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
+                    gyro_id: str | None = Query(None, min_length=1, max_length=64),
+                    model: str | None = Query(None, min_length=1, max_length=300),
+                    date_from: dt.date | None = Query(None, description="requested on or after this day (UTC)"),
+                    date_to: dt.date | None = Query(None, description="requested on or before this day (UTC)"),
+                    limit: int = Query(100, ge=1, le=1000)):
+    lo, hi = _day_bounds(date_from, date_to)
+    stmt = select(Analysis).where(Analysis.kind == "close_loop")
+    if gyro_id is not None:
+        stmt = stmt.where(Analysis.gyro_id == gyro_id)
+    if lo is not None:
+        stmt = stmt.where(Analysis.created_at >= lo)
+    if hi is not None:
+        stmt = stmt.where(Analysis.created_at < hi)
+    with db.session() as s:
+        rows = [a for a in s.scalars(stmt.order_by(Analysis.created_at.desc(), Analysis.id.desc()))
+                if model is None or (a.request or {}).get("model") == model][:limit]
+        return {"analyses": [_analysis_summary(a) for a in rows]}
 
 
 # -------------------------------------------------------------------------------------- fits

@@ -121,7 +121,7 @@ def demo_command(
             typer.echo(f"  {ch}: {r['verdict']}; validation std of 100-s means "
                        f"{r['before']['validation_std100_dph']:.4f} -> {r['after']['validation_std100_dph']:.4f} "
                        f"deg/h (noise floor {r['noise_floor_dph']:.4f}); added: {added}")
-        html = http.get(f"/close-loop/{job['id']}/report")
+        html = http.get(f"/close-loop/{job['id']}/report", timeout=max(30.0, deadline - time.monotonic()))
         if html.status_code == 200 and html.text.lstrip().startswith("<!DOCTYPE"):
             (out / "close-loop.html").write_text(html.text)
             typer.echo(f"  report: {out / 'close-loop.html'}")

@@ -1,17 +1,33 @@
-"""``bench fit`` and ``bench close-loop``."""
+"""``bench fit`` and ``bench close-loop``.
+
+Both print each long step on stderr as it runs (loading the data, fitting or analysing each channel,
+writing the report) and how long it took; stdout holds only the result: the JSON document with
+``--json -``, else one summary line per channel with units.
+"""
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any, Optional
 
 import typer
 
-from bench.commands.common import clean_floats, guarded, load_dataset, write_json
+from bench.commands.common import (clean_floats, db_option, guarded, load_dataset, quantity, step,
+                                   write_json)
 
 
 def register(app: typer.Typer) -> None:
     app.command("fit")(fit_command)
     app.command("close-loop")(close_loop_command)
+
+
+def _load(kind: str, spec: str, db_url: str | None):
+    what = f"run {spec}" if spec.isdigit() else spec
+    with step(f"loading the {kind} data ({what})"):
+        return load_dataset(spec, db_url)
+
+
+def _summary(line: str, json_out: str) -> None:
+    """A human line: stdout, or stderr when stdout carries the JSON document."""
+    typer.echo(line, err=json_out == "-")
 
 
 @guarded
@@ -24,18 +40,28 @@ def fit_command(
     html_out: Optional[str] = typer.Option(None, "--html", help="write the HTML report here"),
     channel: Optional[list[str]] = typer.Option(None, "--channel", help="channel(s) to fit (default: all)"),
     latitude: Optional[float] = typer.Option(None, "--latitude", help="latitude in degrees (Earth-rate removal)"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Fit a temperature model and report its error on the training and validation data."""
     from bench.fit.catalog import predict
     from bench.fit.channels import fit_channels
+    from bench.jsonsafe import jsonable
 
-    train_ds = load_dataset(train)
-    val_ds = load_dataset(validate) if validate else None
+    train_ds = _load("training", train, db_url)
+    val_ds = _load("validation", validate, db_url) if validate else None
     channels = list(channel) if channel else train_ds.gyro_channels()
     opts: dict[str, Any] = {}
     if latitude is not None:
         opts["latitude_deg"] = latitude
-    doc, results = fit_channels(model, train_ds, val_ds, channels, opts)
+    doc: dict[str, Any] = {"model": model, "channels": {}}
+    results = []
+    for ch in channels:
+        with step(f"fitting {model} on channel {ch}"):
+            one, res = fit_channels(model, train_ds, val_ds, [ch], opts)
+        doc["model"] = one["model"]
+        doc["channels"].update(one["channels"])
+        results += res
+    doc = jsonable(doc)
     for r in results:
         warning = ((r.definition or {}).get("earth_rate") or {}).get("warning")
         if warning:
@@ -44,18 +70,23 @@ def fit_command(
     write_json(json_out, doc)
     if html_out:
         from bench.fit.report import render_fit_report
+        from bench.files import write_text_atomic
 
-        page = render_fit_report(results, train_ds, val_ds, predict=predict, title=f"Fit report: {model}")
-        Path(html_out).write_text(page)
-    if json_out != "-":
-        for ch, entry in doc["channels"].items():
-            tr, va = entry.get("train", {}), entry.get("validation")
-            probe = (entry.get("definition") or {}).get("probe")
-            label = f"{ch} (probe {probe})" if probe else ch
-            line = f"{label}: train rms {tr.get('rms_dph')}, std100 {tr.get('std100_dph')}"
-            if va:
-                line += f"; validation rms {va.get('rms_dph')}, std100 {va.get('std100_dph')}"
-            typer.echo(line)
+        with step(f"writing the HTML report {html_out}"):
+            page = render_fit_report(results, train_ds, val_ds, predict=predict, title=f"Fit report: {model}")
+            write_text_atomic(html_out, page)
+    for ch, entry in doc["channels"].items():
+        tr, va = entry.get("train", {}), entry.get("validation")
+        probe = (entry.get("definition") or {}).get("probe")
+        label = f"{ch} (probe {probe})" if probe else ch
+        line = (f"{label}: training RMS {quantity(tr.get('rms_dph'), 'deg/h')}, "
+                f"std of 100-s means {quantity(tr.get('std100_dph'), 'deg/h')}")
+        if va:
+            line += (f"; validation RMS {quantity(va.get('rms_dph'), 'deg/h')}, "
+                     f"std of 100-s means {quantity(va.get('std100_dph'), 'deg/h')}")
+        if "max_abs_error_c" in entry:
+            line += f"; max |error| {quantity(entry['max_abs_error_c'], '°C')}"
+        _summary(line, json_out)
 
 
 @guarded
@@ -67,20 +98,32 @@ def close_loop_command(
     html_out: Optional[str] = typer.Option(None, "--html", help="write the HTML report here"),
     channel: Optional[list[str]] = typer.Option(None, "--channel", help="channel(s) (default: all)"),
     latitude: Optional[float] = typer.Option(None, "--latitude", help="latitude in degrees (Earth-rate removal)"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Find what the declared model misses, add the effects that help on the held-out run, report."""
     from bench.fit.closeloop import close_loop, public
     from bench.fit.closeloop_report import render_close_loop_report
 
-    train_ds, val_ds = load_dataset(train), load_dataset(validate)
-    report = close_loop(train_ds, val_ds, model, channels=list(channel) if channel else None, latitude_deg=latitude)
+    train_ds, val_ds = _load("training", train, db_url), _load("held-out", validate, db_url)
+    report: dict[str, Any] | None = None
+    for ch in (list(channel) if channel else train_ds.gyro_channels()):
+        with step(f"close the loop on channel {ch}"):
+            one = close_loop(train_ds, val_ds, model, channels=[ch], latitude_deg=latitude)
+        if report is None:
+            report = one
+        else:
+            report["channels"].update(one["channels"])
     doc = clean_floats(public(report))
     doc["train_source"], doc["validation_source"] = train, validate
     write_json(json_out, doc)
     if html_out:
-        Path(html_out).write_text(render_close_loop_report(report, train_ds, val_ds))
-    if json_out != "-":
-        for ch, r in doc["channels"].items():
-            typer.echo(f"{ch}: {r['verdict']}; validation std100 {r['before']['validation_std100_dph']:.4g} -> "
-                       f"{r['after']['validation_std100_dph']:.4g} deg/h; added: "
-                       f"{', '.join(e['kind'] for e in r['effects_added']) or 'nothing'}")
+        from bench.files import write_text_atomic
+
+        with step(f"writing the HTML report {html_out}"):
+            write_text_atomic(html_out, render_close_loop_report(report, train_ds, val_ds))
+    for ch, r in doc["channels"].items():
+        _summary(f"{ch}: {str(r['verdict']).replace('_', ' ')}; validation std of 100-s means "
+                 f"{quantity(r['before']['validation_std100_dph'], 'deg/h')} -> "
+                 f"{quantity(r['after']['validation_std100_dph'], 'deg/h')} (noise floor "
+                 f"{quantity(r.get('noise_floor_dph'), 'deg/h')}); added: "
+                 f"{', '.join(e['kind'] for e in r['effects_added']) or 'nothing'}", json_out)

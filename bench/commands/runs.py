@@ -5,8 +5,8 @@
     reaches nested fields; values are JSON when they parse as JSON, else text; ``key=null`` gives
     None), builds and validates the plan against the bench (a bad plan is refused with the reason
     before a run row exists or anything moves), creates the run, prints ``run <ID>`` on stdout,
-    shows a progress bar on stderr and executes the plan.  With ``--json`` the last stdout line is
-    one JSON object (run_id, status, outcome, frames, gaps, suspensions...).
+    shows a progress bar on stderr and executes the plan.  With ``--json`` stdout holds exactly one
+    JSON object (run_id, status, outcome, frames, gaps, suspensions...) and ``run <ID>`` goes to stderr.
     ``--sim`` starts a ``SimulatedBench`` in this process at ``--speed`` (bench seconds per wall
     second) and uses its bench config; otherwise the config comes from ``--config PATH`` or
     ``$BENCH_CONFIG`` and time is real, or with ``--sim-endpoints FILE`` from a simulated bench running in
@@ -44,7 +44,7 @@ from typing import Any, Optional
 
 import typer
 
-from bench.commands.common import fail, guarded
+from bench.commands.common import db_option, fail, guarded, step
 
 runs_app = typer.Typer(help="Stored runs: list and show.", no_args_is_help=True)
 HEARTBEAT_S = 1.0
@@ -216,6 +216,16 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
     return status
 
 
+def _announce(run_id: int, as_json: bool) -> None:
+    """``run <ID>`` as soon as the run exists: on stdout, or on stderr with ``--json`` (stdout then
+    carries exactly one JSON object)."""
+    if as_json:
+        typer.echo(f"run {run_id}", err=True)
+        return
+    sys.stdout.write(f"run {run_id}\n")
+    sys.stdout.flush()
+
+
 def _finish(db, run_id: int, status: str, as_json: bool) -> None:
     from bench.engine.sqlstore import run_report
 
@@ -275,8 +285,7 @@ def run_command(
     sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to a simulated bench "
                                                 "running in another process (`bench sim up --endpoints-json FILE`)"),
     config_path: Optional[str] = typer.Option(None, "--config", help=f"bench config JSON (default ${CONFIG_ENV})"),
-    db_url: Optional[str] = typer.Option(None, "--db", help="database URL (default $BENCH_DATABASE_URL or "
-                                                            "sqlite:///var/bench.sqlite)"),
+    db_url: Optional[str] = db_option(),
     operator: str = typer.Option("", "--operator", help="who starts the run"),
     as_json: bool = typer.Option(False, "--json", help="end with one JSON object on stdout"),
     no_progress: bool = typer.Option(False, "--no-progress", help="no progress bar"),
@@ -330,8 +339,7 @@ def run_command(
         run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
                          config_snapshot=config.model_dump(mode="json"), gyro_id=gyro, bench_name=config.name,
                          operator=operator, launch=launch)
-        sys.stdout.write(f"run {run_id}\n")
-        sys.stdout.flush()
+        _announce(run_id, as_json)
         typer.echo(f"{module.NAME} on gyro {gyro}: {summary['n_steps']} steps, about "
                    f"{summary['total_bench_h']:.2f} h of bench time"
                    + ((f" (simulated bench in lockstep, at most x{pace:g}: at least "
@@ -362,7 +370,7 @@ def resume_command(
     run: int = typer.Argument(..., help="run ID"),
     config_path: Optional[str] = typer.Option(None, "--config", help=f"bench config JSON (default ${CONFIG_ENV}); "
                                                                      "not used for a simulated run"),
-    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    db_url: Optional[str] = db_option(),
     sim_endpoints: Optional[str] = typer.Option(None, "--sim-endpoints", help="attach to this running simulated "
                                                 "bench (default: the one the run was started on)"),
     force: bool = typer.Option(False, "--force", help="resume even if the run's process looks alive"),
@@ -411,8 +419,7 @@ def resume_command(
     try:
         stored = live.get("engine_config")
         engine_config = EngineConfig.model_validate(stored) if stored else engine_config_for(clock)
-        sys.stdout.write(f"run {run}\n")
-        sys.stdout.flush()
+        _announce(run, as_json)
         typer.echo(f"resuming run {run} ({procedure})" + (" on a restarted simulated bench" if sim_info else ""),
                    err=True)
         status = _execute(db, run, config, clock, engine_config, show_progress=not no_progress,
@@ -427,7 +434,7 @@ def resume_command(
 @runs_app.command("list")
 @guarded
 def list_command(
-    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    db_url: Optional[str] = db_option(),
     status: Optional[str] = typer.Option(None, "--status", help="only runs with this status"),
     limit: int = typer.Option(50, "--limit", help="at most this many (newest first)"),
     as_json: bool = typer.Option(False, "--json", help="JSON list"),
@@ -460,7 +467,7 @@ def list_command(
 @guarded
 def show_command(
     run: int = typer.Argument(..., help="run ID"),
-    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    db_url: Optional[str] = db_option(),
     as_json: bool = typer.Option(False, "--json", help="one JSON object"),
 ) -> None:
     """Status, step, progress, frames, gaps and suspensions of a run."""
@@ -492,7 +499,7 @@ def export_command(
     run: int = typer.Argument(..., help="run ID"),
     fmt: str = typer.Option("csv", "--format", help="csv (measured-data CSV v1) or parquet"),
     output: Optional[str] = typer.Option(None, "-o", "--output", help="file (default stdout)"),
-    db_url: Optional[str] = typer.Option(None, "--db", help="database URL"),
+    db_url: Optional[str] = db_option(),
     recorded_only: bool = typer.Option(False, "--recorded-only", help="csv: only seconds inside recorded segments"),
     resolution: str = typer.Option("second", "--resolution", help="parquet: second (1-s means) or frame"),
 ) -> None:
@@ -502,7 +509,8 @@ def export_command(
         from bench.fit.csvio import format_csv, write_csv
         from bench.storage.export import run_dataset
 
-        ds = run_dataset(run, db, recorded_only=recorded_only)
+        with step(f"reading run {run}"):
+            ds = run_dataset(run, db, recorded_only=recorded_only)
         if len(ds) == 0:
             fail(f"run {run}: no frames stored{' inside recorded segments' if recorded_only else ''}; nothing to export")
         if output:
@@ -517,7 +525,8 @@ def export_command(
         if resolution not in ("second", "frame"):
             fail(f"--resolution {resolution!r}: use second or frame")
         if output:
-            export_parquet(db, run, output, resolution=resolution)
+            with step(f"writing run {run} to {output}"):
+                export_parquet(db, run, output, resolution=resolution)
         else:
             with tempfile.TemporaryDirectory() as tmp:
                 path = export_parquet(db, run, Path(tmp) / f"run{run}.parquet", resolution=resolution)

@@ -24,7 +24,7 @@ from typing import Any, Optional
 
 import typer
 
-from bench.commands.common import fail, guarded
+from bench.commands.common import db_option, fail, guarded
 
 
 def register(app: typer.Typer) -> None:
@@ -93,6 +93,10 @@ def _tokens_or_generate() -> str:
 
 
 # ------------------------------------------------------------------------------------------ serve
+def _exit_on_sigterm(signum, _frame) -> None:
+    raise SystemExit(128 + signum)
+
+
 @guarded
 def serve_command(
     host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
@@ -108,6 +112,7 @@ def serve_command(
     log_level: str = typer.Option("info", "--log-level"),
     log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
                                              "default $BENCH_LOG_FORMAT or text"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Run the API (metrics at /metrics) and one worker per configured bench in this process."""
     import uvicorn
@@ -118,7 +123,7 @@ def serve_command(
     from bench.worker import Worker
 
     log_format = configure_logging(log_level, log_format)
-    db = open_database()
+    db = open_database(db_url)
     tokens = _tokens_or_generate()
     sim = None
     workers = []
@@ -147,6 +152,10 @@ def serve_command(
         analysis_worker = _start_analysis_worker(db.url, log_level, log_format)
         typer.echo(f"database {db.dialect}; benches: {', '.join(w.bench_name for w in workers)}; "
                    f"API on http://{host}:{port}/docs", err=True)
+        # uvicorn shuts down gracefully on SIGINT and SIGTERM, then raises the signal again with the
+        # handler it found: make SIGTERM end this function through ``finally`` (workers stopped, the
+        # simulated bench's w1 tree removed) as SIGINT's KeyboardInterrupt does
+        signal.signal(signal.SIGTERM, _exit_on_sigterm)
         uvicorn.run(create_app(db, tokens=tokens), host=host, port=port, log_level=log_level.lower(),
                     log_config=uvicorn_log_config(log_format))
     finally:
@@ -193,6 +202,7 @@ def worker_command(
     metrics_port: Optional[int] = typer.Option(None, "--metrics-port", min=0, max=65535,
                                                help="serve Prometheus metrics on this port (0: any free port)"),
     metrics_addr: str = typer.Option("127.0.0.1", "--metrics-addr", help="address of the metrics server"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Serve one bench: claim its queued runs, execute them, resume a run whose worker died; or, with
     --analysis, execute analysis jobs (fits, close-the-loop, reports) and re-run those whose worker died."""
@@ -207,7 +217,7 @@ def worker_command(
     configure_logging(log_level, log_format)
     if analysis == (bench is not None):
         fail("give either --bench NAME (a bench worker) or --analysis (an analysis worker)")
-    db = open_database()
+    db = open_database(db_url)
     if analysis:
         from bench.jobs import JobRunner
 
@@ -254,12 +264,13 @@ def coefficients_command(
     ardupilot_imu: int = typer.Option(1, "--ardupilot-imu", min=1, max=3, help="ArduPilot IMU number (INS_TCAL<n>_)"),
     ardupilot_caltemp: Optional[float] = typer.Option(None, "--ardupilot-caltemp",
                                                       help="temperature of the exported gyro offsets (default 35 C)"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Print a gyro's coefficients: the latest accepted fit of each model, or export one model for firmware."""
     from api.coefficients import NoCoefficients, load_coefficients
     from bench.storage import open_database
 
-    db = open_database()
+    db = open_database(db_url)
     if fmt is not None:
         from api.coefficients import export_coefficients
         from bench.fit.firmware import NotExpressible
@@ -277,9 +288,9 @@ def coefficients_command(
         if output is None or output == "-":
             sys.stdout.write(text)
         else:
-            tmp = Path(output + ".tmp")
-            tmp.write_text(text)
-            tmp.replace(output)
+            from bench.files import write_text_atomic
+
+            write_text_atomic(output, text)
             typer.echo(f"wrote {output}", err=True)
         return
     try:
@@ -319,15 +330,17 @@ def import_command(
     gyro: str = typer.Option(..., "--gyro", help="gyro ID the data belongs to"),
     bench_name: Optional[str] = typer.Option(None, "--bench", help="bench the data was measured on"),
     operator: str = typer.Option("", "--operator"),
+    db_url: Optional[str] = db_option(),
 ) -> None:
     """Store a measured-data CSV as a completed run (then fit it with ``bench fit MODEL RUN_ID``)."""
+    from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from bench.fit.csvio import CsvStream
     from bench.storage import open_database
 
     CsvStream(file)          # a missing or unreadable file, or a bad header: one line, before the database
-    db = open_database()
+    db = open_database(db_url)
     rows = [0]
 
     def advance(k: int) -> None:
@@ -335,7 +348,7 @@ def import_command(
         bar.advance(task, k)
 
     with Progress(TextColumn("[bold]import"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
-                  transient=False) as bar:
+                  console=Console(stderr=True), transient=False) as bar:
         task = bar.add_task("rows", total=None)
         run_id = import_csv(db, file, gyro, bench_name=bench_name, operator=operator, progress=advance)
     typer.echo(f"run {run_id}: {rows[0]} rows of {file} stored for gyro {gyro}")

@@ -9,6 +9,7 @@ import numpy as np
 from bench.fit.base import Dataset, FitResult
 from bench.fit.catalog import fit_model, predict, target_of
 from bench.fit.metrics import bias_stability
+from bench.fit.validity import range_aware_errors, result_in_range
 from bench.jsonsafe import jsonable
 
 
@@ -20,6 +21,14 @@ def prediction_metrics(values: np.ndarray, target: np.ndarray, time_s: np.ndarra
     return {"rms_dph": float(np.sqrt(np.mean(resid[ok] ** 2))) if ok.any() else None,
             "std100_dph": bias_stability(time_s, np.where(ok, resid, np.nan), 100.0),
             "n": int(ok.sum()), "flagged_fraction": float(np.mean(flagged)) if len(flagged) else 0.0}
+
+
+def validation_errors(result: FitResult, data: Dataset, values: np.ndarray, target: np.ndarray,
+                      flagged: np.ndarray) -> dict[str, Any]:
+    """Range-aware validation numbers (``bench.fit.validity``): in-range std100/RMS, coverage, and the
+    deployed model's std100 on the whole run."""
+    resid = np.asarray(target, float) - np.asarray(values, float)
+    return range_aware_errors(resid, resid, data.time, result_in_range(result, data, flagged))
 
 
 def fit_channels(model: str, train: Dataset, validate: Dataset | None, channels: list[str],
@@ -39,6 +48,8 @@ def fit_channels(model: str, train: Dataset, validate: Dataset | None, channels:
             values, flagged = predict(result, data)
             target = target_of(result, data)
             entry[label] = prediction_metrics(values, target, data.time, flagged)
+            if label == "validation":
+                entry[label].update(validation_errors(result, data, values, target, flagged))
             if result.model == "hrg_reverse":
                 err = np.abs(np.asarray(values) - target)
                 entry[label]["max_abs_error_c"] = float(np.nanmax(err))

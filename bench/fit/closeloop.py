@@ -1,69 +1,60 @@
 """Close the loop: fit the declared model, find what its residual still contains, trace it to a
 physical effect, add it, and report the error before and after on a held-out run.
 
-Method (calibration-notes sections 4 and 7):
+Which decision uses which run:
 
-1. Fit the declared model (a linear design: a formula or a named model expressed as one) on TRAIN,
-   Earth rate removed when orientation and latitude are known.
-2. For every candidate of ``bench.fit.effects`` (with its nonlinear parameter scanned), fit the
-   declared design plus the candidate's columns on TRAIN.  Evidence is computed on 100-s block means
-   (about one point per thermal time step, which removes the white noise and most of the
-   autocorrelation) with two tests that survive the remaining autocorrelation: a Wald test with
-   Newey-West (HAC) covariance of the new coefficients, and a BIC difference computed with the
-   effective number of points n_eff = n (1 - rho) / (1 + rho) (rho = lag-1 autocorrelation of the
-   block residual).  The nonlinear parameter search adds one parameter to the BIC penalty.
-3. Significant candidates (HAC p < 1e-3 and delta-BIC > 10) are ranked by delta-BIC; the first one
-   that also lowers the VALIDATE std of 100-s means by at least 5 % is added.  Repeat until none.
-4. Noise floor: the Allan deviation of the TRAIN residual at tau = 100 s (for white noise it equals
-   the std of 100-s means; slow structure barely moves it).  Structure remains when the validation
-   std of 100-s means is well above that floor (> 1.5x) and a whiteness, spectral-peak or trend
-   test on the 100-s means fails; it is described (period, amplitude, slope) instead of being
-   "explained" with terms that do not help on VALIDATE.
+1. TRAIN: the declared model (a linear design: a formula or a named model expressed as one) is fitted
+   on the training run, Earth rate removed when orientation and latitude are known.
+2. TRAIN: the effects it lacks are chosen (``bench.fit.closeloop_search``: every family of
+   ``bench.fit.effects`` on every probe, every nonlinear parameter searched; delta-BIC with effective
+   n, HAC Wald, blocked cross-validation; joint re-fits; pairs).  The validation run is not looked at.
+3. VALIDATE, in range: the validation run is split (``bench.fit.validity``) into the part where every
+   declared input lies inside its training range and the rest.  The declared model's inputs are never
+   clipped for the diagnosis.  Each chosen effect is confirmed there: one whose removal does not make
+   the in-range std of 100-s means worse "did not generalise" and is kept out of "after" (so the
+   validation error is never made worse); its channel is not called explained.
+4. Noise floor (``bench.fit.noisefloor``) from the Allan variance of the final residuals (training
+   run and the in-range validation part) at short taus, fitted with white, flicker and quantisation
+   terms, extrapolated to the std of 100-s means over a record as long as the validation run, with
+   its sampling interval.
+5. Verdict on the in-range validation part: ``explained`` (effects added, all generalised, std100
+   within 1.2x of the floor or inside the floor's noise interval), ``partly_explained`` (added effects
+   helped but structure remains or one did not generalise), ``no_effect_missing`` (nothing added and
+   at the floor), ``unexplained_structure_remains`` (nothing added helps and the error is above the
+   floor); the structure left is described (whiteness, periodic with >= 2 periods in the record,
+   trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
 """
 from __future__ import annotations
 
-import warnings
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
-from bench.fit.linear import newey_west_lags
-from bench.fit.metrics import bias_stability, window_means
+from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
+                                        evidence_blocks, gates, search)
+from bench.fit.metrics import bias_stability
+from bench.fit.noisefloor import WHITE_MUS, fit_noise_model
+from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
+from bench.signal import block_means
+from bench.signal import lstsq as signal_lstsq
 
-BLOCK_S = 100.0
-P_MAX = 1e-3
-DBIC_MIN = 10.0
-MIN_VALIDATION_GAIN = 0.05
-STRUCTURE_RATIO = 1.5
-MAX_EFFECTS = 4
-AMBIGUOUS_DBIC = 10.0       # a runner-up this close to the winner is reported as indistinguishable
+__all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
+
+AT_FLOOR_RATIO = 1.2
+STOP_RATIO = 1.15
+MIN_DIAGNOSIS_BLOCKS = 12
+MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
+MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
+TEST_P = 0.01
 
 
-@dataclass
-class Design:
-    names: list[str]
-    train: np.ndarray      # (n_train, k)
-    validate: np.ndarray   # (n_val, k)
-
-
-# --------------------------------------------------------------------------------------------
-# small numerical helpers
-
-def block_means(x: np.ndarray, time_s: np.ndarray, block_s: float = BLOCK_S) -> np.ndarray:
-    """Means over consecutive blocks of ``block_s`` seconds (last partial block dropped).  x may be 1-D
-    or 2-D (rows = samples)."""
-    dt = fx.sample_period(time_s)
-    per = max(1, int(round(block_s / dt)))
-    n = (len(x) // per) * per
-    if n == 0:
-        return x[:0]
-    shaped = x[:n].reshape((n // per, per) + x.shape[1:])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)      # an all-missing block is NaN, on purpose
-        return np.nanmean(shaped, axis=1)
+def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Coefficients of ``bench.signal.lstsq`` (rows with a missing value left out)."""
+    return signal_lstsq(X, y).coef
 
 
 def std100(residual: np.ndarray, time_s: np.ndarray) -> float:
@@ -76,57 +67,19 @@ def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
 
-def _finite_rows(X: np.ndarray, y: np.ndarray | None = None) -> np.ndarray:
-    ok = np.all(np.isfinite(X), axis=1) if X.ndim == 2 else np.isfinite(X)
-    return ok & np.isfinite(y) if y is not None else ok
+def sample_period(time_s: np.ndarray) -> float:
+    return float(np.median(np.diff(time_s))) if len(time_s) > 1 else 1.0
 
 
-def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Least squares on column-scaled X (numerically safe for powers of temperature); rows with a
-    missing value (gyro off, probe lost) are left out."""
-    ok = _finite_rows(X, y)
-    X, y = X[ok], y[ok]
-    scale = np.sqrt(np.mean(X ** 2, axis=0))
-    scale[scale == 0] = 1.0
-    beta, *_ = np.linalg.lstsq(X / scale, y, rcond=None)
-    return beta / scale
-
-
-def lag1(x: np.ndarray) -> float:
-    x = x[np.isfinite(x)]
-    x = x - x.mean()
-    den = float(np.dot(x, x))
-    return float(np.dot(x[1:], x[:-1]) / den) if den > 0 else 0.0
-
-
-def hac_wald_p(X: np.ndarray, y: np.ndarray, new_cols: list[int]) -> float:
-    """p-value of the joint Wald test that the ``new_cols`` coefficients are 0, HAC covariance."""
-    import statsmodels.api as sm
-
-    ok = _finite_rows(X, y)
-    X, y = X[ok], y[ok]
-    n = len(y)
-    maxlags = max(1, newey_west_lags(n))
-    scale = np.sqrt(np.mean(X ** 2, axis=0))
-    scale[scale == 0] = 1.0
-    res = sm.OLS(y, X / scale).fit(cov_type="HAC", cov_kwds={"maxlags": maxlags})
-    R = np.zeros((len(new_cols), X.shape[1]))
-    for i, c in enumerate(new_cols):
-        R[i, c] = 1.0
-    try:
-        test = res.wald_test(R, scalar=True)
-        return float(test.pvalue)
-    except (np.linalg.LinAlgError, ValueError):
-        return 1.0
-
-
-def allan_at(residual: np.ndarray, time_s: np.ndarray, tau_s: float) -> float:
-    import allantools
-
-    x = residual[np.isfinite(residual)]
-    rate = 1.0 / fx.sample_period(time_s)
-    taus, adev, _, _ = allantools.oadev(x, rate=rate, data_type="freq", taus=np.array([tau_s]))
-    return float(adev[0]) if len(adev) else float("nan")
+@dataclass
+class Design:
+    names: list[str]
+    train: np.ndarray                  # (n_train, k), declared inputs as measured
+    validate: np.ndarray               # (n_val, k), declared inputs as measured (never clipped)
+    validate_deployed: np.ndarray | None = None   # inputs clipped to the training ranges
+    in_range: np.ndarray | None = None            # validation samples with every input in range
+    outside: dict[str, Any] = field(default_factory=dict)
+    train_signals: np.ndarray | None = None       # the declared inputs on TRAIN (n_train, s)
 
 
 # --------------------------------------------------------------------------------------------
@@ -134,9 +87,13 @@ def allan_at(residual: np.ndarray, time_s: np.ndarray, tau_s: float) -> float:
 
 def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: float) -> dict[str, Any]:
     """Tests the 100-s means of a residual for leftover structure: whiteness (Ljung-Box), the
-    strongest periodic component (Fisher's g test on the periodogram) and a linear trend (HAC)."""
+    strongest periodic component with at least two periods in the record (Fisher's g test on the
+    periodogram) and a linear trend (HAC)."""
     import statsmodels.api as sm
     from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    from bench.fit.linear import newey_west_lags
+    from bench.fit.metrics import window_means
 
     means = window_means(time_s, residual, 100.0)
     n = len(means)
@@ -151,14 +108,12 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     out["ratio_to_noise_floor"] = s / noise_floor if noise_floor > 0 else float("inf")
     lb = acorr_ljungbox(centred, lags=[min(10, n // 5)], return_df=True)
     out["ljung_box_p"] = float(lb["lb_pvalue"].iloc[0])
-    # periodogram and Fisher's g; the peak frequency is then refined by least squares
     spec = np.abs(np.fft.rfft(centred)) ** 2
-    spec = spec[1:]
+    spec = spec[2:]                         # k >= 2: at least two periods in the record
     if len(spec) > 2:
         k = int(np.argmax(spec))
         g = spec[k] / spec.sum()
         m = len(spec)
-        # P(g > x) ~ m (1 - x)^(m-1) (first term of Fisher's exact formula)
         out["peak_p"] = float(min(1.0, m * (1 - g) ** (m - 1)))
         tt = np.arange(n) * 100.0
 
@@ -169,209 +124,275 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
 
         from scipy.optimize import minimize_scalar
         df = 1.0 / (n * 100.0)
-        f0 = (k + 1) * df
-        best = minimize_scalar(lambda f: sine_fit(f)[0], bounds=(max(f0 - df, df / 4), f0 + df), method="bounded")
+        f0 = (k + 2) * df
+        best = minimize_scalar(lambda f: sine_fit(f)[0], bounds=(max(f0 - df, 1.9 * df), f0 + df), method="bounded")
         out["peak_period_s"] = float(1.0 / best.x)
         out["peak_amplitude_dph"] = sine_fit(best.x)[1]
     tt_h = np.arange(n) * 100.0 / 3600.0
     X = sm.add_constant(tt_h)
-    maxlags = max(1, newey_west_lags(n))
-    res = sm.OLS(means, X).fit(cov_type="HAC", cov_kwds={"maxlags": maxlags})
+    res = sm.OLS(means, X).fit(cov_type="HAC", cov_kwds={"maxlags": max(1, newey_west_lags(n))})
     out["trend_dph_per_h"] = float(res.params[1])
     out["trend_p"] = float(res.pvalues[1])
-    failed = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"), ("trend", "trend_p"))
-              if out.get(key, 1.0) < 0.01]
-    out["failed_tests"] = failed
-    out["structure"] = bool(failed) and out["ratio_to_noise_floor"] > STRUCTURE_RATIO
+    out["failed_tests"] = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"),
+                                                  ("trend", "trend_p")) if out.get(key, 1.0) < TEST_P]
     return out
 
 
+def at_floor(std: float, floor: dict[str, Any]) -> bool:
+    """Within 1.2x of the noise floor, or inside the interval noise alone gives on this record."""
+    f = floor.get("noise_floor_dph", float("nan"))
+    hi = floor.get("interval_dph", [float("nan")] * 2)[1]
+    if not np.isfinite(std) or not np.isfinite(f):
+        return False
+    return bool(std <= AT_FLOOR_RATIO * f or (np.isfinite(hi) and std <= hi))
+
+
 # --------------------------------------------------------------------------------------------
-# the loop
+# one channel
 
 def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, train: Dataset,
                        validate: Dataset, ctx: fx.Context, declared_name: str) -> dict[str, Any]:
     t_tr, t_va = train.time, validate.time
-    names = list(design.names)
-    X_tr, X_va = design.train, design.validate
-    beta = lstsq(X_tr, y_train)
-    r_tr, r_va = y_train - X_tr @ beta, y_val - X_va @ beta
-    before = _errors(r_tr, r_va, t_tr, t_va)
-
-    library = fx.candidates(ctx, train)
-    built: dict[str, tuple[dict, dict]] = {}
-    added: list[dict[str, Any]] = []
-    used_kinds: set[str] = set()
-    y_tr_blocks = block_means(y_train, t_tr)
-    current_val_std = before["validation_std100_dph"]
-
-    for _ in range(MAX_EFFECTS):
-        Xb = block_means(X_tr, t_tr)
-        base_res = y_tr_blocks - Xb @ lstsq(Xb, y_tr_blocks)
-        ssr0 = float(np.nansum(base_res ** 2))
-        rho = min(max(lag1(base_res), 0.0), 0.95)
-        n = int(np.isfinite(base_res).sum())
-        n_eff = max(10.0, n * (1 - rho) / (1 + rho))
-        best_by_kind: dict[str, dict[str, Any]] = {}
-        for cand in library:
-            if cand.kind in used_kinds and cand.kind not in ("gradient",):
-                continue
-            key = cand.label
-            if key not in built:
-                built[key] = (cand.build(train), cand.build(validate))
-            scored = _score(cand, built[key][0], X_tr, Xb, y_tr_blocks, t_tr, ssr0, n_eff)
-            if scored is None:
-                continue
-            prev = best_by_kind.get(cand.kind)
-            if prev is None or scored["dbic"] > prev["dbic"]:
-                best_by_kind[cand.kind] = scored
-        for kind, entry in best_by_kind.items():
-            if entry["cand"].at_tau is not None:
-                best_by_kind[kind] = _refine_tau(entry, X_tr, Xb, y_tr_blocks, t_tr, ssr0, n_eff, train, validate, built)
-        ranked = sorted(best_by_kind.values(), key=lambda e: -e["dbic"])
-        chosen = None
-        for entry in ranked:
-            if entry["dbic"] < DBIC_MIN:
-                break
-            cand = entry["cand"]
-            cols_tr, cols_va = built[cand.label]
-            Xa_tr = np.column_stack([X_tr] + list(cols_tr.values()))
-            Xa_va = np.column_stack([X_va] + list(cols_va.values()))
-            p = hac_wald_p(block_means(Xa_tr, t_tr), y_tr_blocks, entry["new_cols"])
-            entry["hac_p"] = p
-            if p >= P_MAX:
-                continue
-            b = lstsq(Xa_tr, y_train)
-            val_std = std100(y_val - Xa_va @ b, t_va)
-            entry["validation_std100_dph"] = val_std
-            if val_std < current_val_std * (1 - MIN_VALIDATION_GAIN):
-                chosen = (entry, Xa_tr, Xa_va, b, cols_tr)
-                break
-        if chosen is None:
-            break
-        entry, X_tr, X_va, beta, cols_tr = chosen
-        cand = entry["cand"]
-        new_names = list(cols_tr.keys())
-        names.extend(new_names)
-        used_kinds.add(cand.kind)
-        current_val_std = entry["validation_std100_dph"]
-        added.append({
-            "kind": cand.kind,
-            "params": dict(cand.params),
-            "terms": new_names,
-            "coefficients": {nm: float(beta[len(names) - len(new_names) + i]) for i, nm in enumerate(new_names)},
-            "evidence": {"delta_bic": entry["dbic"], "hac_wald_p": entry["hac_p"], "n_blocks": n,
-                         "n_eff": float(n_eff), "block_s": BLOCK_S,
-                         "runner_up": _runner_up(ranked, cand.kind)},
-            "validation_std100_dph": current_val_std,
-        })
-
-    beta = lstsq(X_tr, y_train)
-    r_tr, r_va = y_train - X_tr @ beta, y_val - X_va @ beta
-    after = _errors(r_tr, r_va, t_tr, t_va)
-    noise_floor = allan_at(r_tr, t_tr, 100.0)
-    structure = {"train": describe_structure(r_tr, t_tr, noise_floor),
-                 "validation": describe_structure(r_va, t_va, noise_floor)}
-    remains = structure["validation"].get("structure", False) or structure["train"].get("structure", False)
-    if remains:
-        verdict = "unexplained_structure_remains"
-    elif added:
-        verdict = "explained"
+    in_range = design.in_range if design.in_range is not None else np.ones(len(validate), dtype=bool)
+    in_blocks = whole_blocks(in_range, t_va)
+    # the part of the validation run the diagnosis uses: the in-range part, unless it is too short to
+    # judge anything (then the whole run with the declared inputs as measured, never clipped)
+    n_in = int(np.sum(np.isfinite(block_means(t_va, {"r": np.where(in_blocks, y_val, np.nan)}, BLOCK_S).columns["r"])))
+    if n_in >= MIN_DIAGNOSIS_BLOCKS:
+        diag, diag_label = in_blocks, "validation (in range)"
     else:
-        verdict = "no_effect_missing"
-    return {
+        diag = np.ones(len(validate), dtype=bool)
+        diag_label = (f"validation (whole run, inputs unclipped: only {n_in} in-range blocks of 100 s, fewer than "
+                      f"{MIN_DIAGNOSIS_BLOCKS})")
+    X_dep = design.validate_deployed if design.validate_deployed is not None else design.validate
+
+    # TRAIN: choose the effects (search on block means)
+    inputs_tr, inputs_va = fx.build_inputs(train, ctx), fx.build_inputs(validate, ctx)
+    fine = inputs_tr.averaged(FINE_S)
+    cols = {"y": y_train}
+    cols.update({f"x{j}": design.train[:, j] for j in range(design.train.shape[1])})
+    sig = design.train_signals if design.train_signals is not None else np.zeros((len(train), 0))
+    cols.update({f"s{j}": sig[:, j] for j in range(sig.shape[1])})
+    on_fine = block_means(t_tr, cols, FINE_S).columns if sample_period(t_tr) < 0.9 * FINE_S else cols
+    ev = evidence_blocks(fine.time, on_fine)
+    k, ns = design.train.shape[1], sig.shape[1]
+    problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[f"x{j}"] for j in range(k)]), fine=fine,
+                            declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
+                            else np.zeros((len(ev["y"]), 0)),
+                            families=fx.families(ctx, inputs_tr))
+    # the search stops once the training residual is within STOP_RATIO of the white part of the noise
+    # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
+    # slow structure still in that residual reads as flicker)
+    r_declared = y_train - design.train @ lstsq(design.train, y_train)
+    model_start = fit_noise_model([(r_declared, sample_period(t_tr))])
+    floor_start = model_start.floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
+    # lag-1 autocorrelation of 100-s means of that noise: 1 - ADEV(100 s)^2 / floor^2 (0 for white)
+    full = model_start.floor(t_tr[-1] - t_tr[0])
+    rho = float(np.clip(1.0 - full.get("adev100_dph", 0.0) ** 2 / full["noise_floor_dph"] ** 2, 0.0, 0.95)) \
+        if np.isfinite(full["noise_floor_dph"]) and full["noise_floor_dph"] > 0 else 0.95
+    problem.n_eff_noise = max(10.0, len(problem.yb) * (1 - rho) / (1 + rho))
+    stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
+
+    def stop_at(effs) -> float:
+        # once effects are in, the residual's own noise floor (flicker included) is the target
+        Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
+        r = y_train - Xt @ lstsq(Xt, y_train)
+        fl = fit_noise_model([(r, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
+        return STOP_RATIO * fl if np.isfinite(fl) else np.inf
+
+    chosen, steps = search(problem, stop_std100=stop, stop_at=stop_at)
+
+    # full-rate columns of the chosen effects, fitted on TRAIN
+    def stack(effs, X, inputs):
+        cols = [X] + [np.column_stack(list(e.columns(inputs).values())) for e in effs]
+        return np.column_stack(cols)
+
+    def fit(effs):
+        Xt = stack(effs, design.train, inputs_tr)
+        beta = lstsq(Xt, y_train)
+        return (beta, y_train - Xt @ beta, y_val - stack(effs, design.validate, inputs_va) @ beta,
+                y_val - stack(effs, X_dep, inputs_va) @ beta)
+
+    def val_in_range(effs) -> float:
+        return std100(np.where(diag, fit(effs)[2], np.nan), t_va)
+
+    # VALIDATE: confirm each chosen effect on the in-range part (backward, never worse)
+    kept = list(chosen)
+    not_generalised: list[tuple[fx.Effect, float, float]] = []
+    while kept:
+        with_all = val_in_range(tuple(kept))
+        drops = [(val_in_range(tuple(k for k in kept if k is not e)), e) for e in kept]
+        worst_val, worst = min(drops, key=lambda d: d[0])
+        if worst_val <= with_all:
+            not_generalised.append((worst, with_all, worst_val))
+            kept.remove(worst)
+        else:
+            break
+    # what is left must still stand on the training evidence without the effects that were dropped
+    weak = True
+    while weak and kept and not_generalised:
+        weak = False
+        for e in list(kept):
+            others = tuple(k for k in kept if k is not e)
+            ev = gates(problem, problem.score(others), problem.score(others + (e,)), (e,))
+            if not ev["passed"]:
+                not_generalised.append((e, float("nan"), float("nan")))
+                kept.remove(e)
+                weak = True
+                break
+    kept_t = tuple(kept)
+
+    beta0, r_tr0, r_va0, r_dep0 = fit(())
+    beta, r_tr, r_va, r_dep = fit(kept_t)
+    before = _errors(r_tr0, r_va0, r_dep0, t_tr, t_va, in_range)
+    after = _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range)
+
+    # noise floor from the final residuals at short taus
+    va_in = np.where(diag, r_va, np.nan)
+    model = fit_noise_model([(r_tr, sample_period(t_tr)), (va_in, sample_period(t_va))])
+    n_in_blocks = int(np.sum(np.isfinite(block_means(t_va, {"r": va_in}, BLOCK_S).columns["r"])))
+    floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S)
+    floor_tr = model.floor(t_tr[-1] - t_tr[0])
+    floor = floor_val["noise_floor_dph"]
+    structure = {"train": describe_structure(r_tr, t_tr, floor_tr["noise_floor_dph"]),
+                 "validation": describe_structure(va_in, t_va, floor)}
+    if structure["validation"].get("testable"):
+        judged_on, judged_std, judged_floor = diag_label, structure["validation"]["std100_dph"], floor_val
+    else:
+        judged_on, judged_std, judged_floor = "train", after["train_std100_dph"], floor_tr
+    at = at_floor(judged_std, judged_floor)
+    for part, fl in (("train", floor_tr), ("validation", floor_val)):
+        st = structure[part]
+        if st.get("testable"):
+            st["at_noise_floor"] = at_floor(st["std100_dph"], fl)
+            st["structure"] = not st["at_noise_floor"]
+    if kept_t:
+        verdict = "explained" if at and not not_generalised else "partly_explained"
+    else:
+        verdict = "no_effect_missing" if at else "unexplained_structure_remains"
+
+    added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
+    dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
+                "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
+                "status": "did not generalise" if np.isfinite(w) else
+                          "not significant on train without the effects that did not generalise"}
+               for e, w, wo in not_generalised]
+    names = list(design.names) + [nm for e in kept_t for nm in e.columns(fine).keys()]
+    floor_doc = {**floor_val, "train_record": floor_tr, "noise_model": model.summary(),
+                 "method": "Allan variance of the final residuals (train + in-range validation) fitted "
+                           "with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
+                           "out of the floor) at taus <= %.0f s; expected std of 100-s means over the "
+                           "in-range validation record (Barnes B1); 90 %% sampling interval" % model.tau_max_s}
+    report = {
         "declared_model": declared_name,
         "declared_terms": list(design.names),
         "primary_probe": ctx.primary_probe,
         "rate_window_s": ctx.rate_window_s,
-        "noise_floor_dph": noise_floor,
+        "noise_floor_dph": floor,
+        "noise_floor": floor_doc,
         "before": before,
         "after": after,
+        "validation_range": {"coverage": after["validation_coverage"], "outside": design.outside},
         "effects_added": added,
+        "effects_not_generalised": dropped,
         "final_terms": names,
         "final_coefficients": {nm: float(b) for nm, b in zip(names, beta)},
         "structure": structure,
         "verdict": verdict,
-        "findings": _findings(declared_name, before, after, added, structure, verdict, noise_floor),
-        "_residuals": {"before": (y_train - design.train @ lstsq(design.train, y_train),
-                                  y_val - design.validate @ lstsq(design.train, y_train)),
-                       "after": (r_tr, r_va)},
+        "verdict_judged_on": judged_on,
+        "decisions": {
+            "declared_fit": "train",
+            "effect_selection_and_parameters": "train (delta-BIC with effective n, HAC Wald, blocked "
+                                               "cross-validation over contiguous train segments)",
+            "generalisation_check": diag_label,
+            "noise_floor": "train residual and in-range validation residual, taus <= %.0f s" % model.tau_max_s,
+            "verdict": judged_on,
+        },
+        "search_steps": steps,
+        "search_stop_std100_dph": stop,
     }
+    report["findings"] = _findings(report)
+    report["_residuals"] = {"before": (r_tr0, r_va0), "after": (r_tr, r_va)}
+    return report
 
 
-def _score(cand, cols_tr, X_tr, Xb, y_blocks, t_tr, ssr0, n_eff) -> dict[str, Any] | None:
-    """Delta-BIC of adding the candidate's columns to the current design (100-s block means)."""
-    Z_tr = np.column_stack(list(cols_tr.values()))
-    Xab = block_means(np.column_stack([X_tr, Z_tr]), t_tr)
-    rank_gain = _rank(Xab) - _rank(Xb)
-    if rank_gain <= 0:
-        return None
-    ssr1 = float(np.nansum((y_blocks - Xab @ lstsq(Xab, y_blocks)) ** 2))
-    if ssr1 <= 0 or ssr1 >= ssr0:
-        return None
-    dbic = n_eff * np.log(ssr0 / ssr1) - (rank_gain + cand.n_nonlinear) * np.log(n_eff)
-    return {"cand": cand, "dbic": float(dbic), "ssr1": ssr1,
-            "new_cols": list(range(X_tr.shape[1], X_tr.shape[1] + Z_tr.shape[1]))}
+def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) -> list[dict[str, Any]]:
+    """Per kept effect: terms, coefficients, its training evidence with the others present, and the
+    in-range validation std100 after adding the effects up to it (in the order chosen)."""
+    out = []
+    step_ev = {lab: s["evidence"] for s in steps if "evidence" in s for lab in s["after_joint_refit"]}
+    beta = fit(kept)[0]
+    offset = problem.Xb.shape[1]
+    for i, e in enumerate(kept):
+        others = kept[:i] + kept[i + 1:]
+        base = problem.score(others, with_cv=True)
+        ev = gates(problem, base, problem.score(others + (e,), with_cv=True), (e,))
+        ev.pop("passed", None)
+        first = step_ev.get(e.label, {})
+        if first.get("runner_up") is not None:
+            ev["runner_up"] = first["runner_up"]
+            ev["bic_margin_to_runner_up"] = first.get("bic_margin_to_runner_up")
+        cols = list(e.columns(problem.fine).keys())
+        start = offset + sum(len(k.columns(problem.fine)) for k in kept[:i])
+        val_upto = std100(np.where(in_range, fit(kept[: i + 1])[2], np.nan), t_va)
+        out.append({"kind": e.kind, "params": e.params, "terms": cols,
+                    "coefficients": {nm: float(beta[start + j]) for j, nm in enumerate(cols)},
+                    "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised"})
+    return out
 
 
-def _rank(x: np.ndarray) -> int:
-    x = x[_finite_rows(x)]
-    scale = np.sqrt(np.mean(x ** 2, axis=0))
-    return int(np.linalg.matrix_rank(x / np.where(scale > 0, scale, 1.0)))
+def _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range) -> dict[str, float]:
+    out = {"train_rms_dph": rms(r_tr), "train_std100_dph": std100(r_tr, t_tr)}
+    out.update(range_aware_errors(r_va, r_dep, t_va, in_range))
+    return out
 
 
-def _refine_tau(entry, X_tr, Xb, y_blocks, t_tr, ssr0, n_eff, train, validate, built):
-    """Golden-section refinement of a searched time constant between its grid neighbours."""
-    from scipy.optimize import minimize_scalar
-
-    tau0 = float(entry["cand"].params["tau_s"])
-    make = entry["cand"].at_tau
-
-    def cost(log_tau: float) -> float:
-        cand = make(float(np.exp(log_tau)))
-        scored = _score(cand, cand.build(train), X_tr, Xb, y_blocks, t_tr, ssr0, n_eff)
-        return -scored["dbic"] if scored else np.inf
-
-    res = minimize_scalar(cost, bounds=(np.log(tau0 / 2.2), np.log(tau0 * 2.2)), method="bounded",
-                          options={"xatol": 0.02})
-    if not np.isfinite(res.fun) or -res.fun <= entry["dbic"]:
-        return entry
-    cand = make(float(np.exp(res.x)))
-    built[cand.label] = (cand.build(train), cand.build(validate))
-    return _score(cand, built[cand.label][0], X_tr, Xb, y_blocks, t_tr, ssr0, n_eff)
-
-
-def _runner_up(ranked: list[dict[str, Any]], chosen_kind: str) -> dict[str, Any] | None:
-    for e in ranked:
-        if e["cand"].kind != chosen_kind:
-            return {"kind": e["cand"].kind, "params": dict(e["cand"].params), "delta_bic": e["dbic"]}
-    return None
-
-
-def _errors(r_tr, r_va, t_tr, t_va) -> dict[str, float]:
-    return {"train_rms_dph": rms(r_tr), "train_std100_dph": std100(r_tr, t_tr),
-            "validation_rms_dph": rms(r_va), "validation_std100_dph": std100(r_va, t_va)}
-
-
-def _findings(declared, before, after, added, structure, verdict, floor) -> str:
-    lines = [f"Declared model {declared}: validation std of 100-s means "
-             f"{before['validation_std100_dph']:.4g} deg/h before, {after['validation_std100_dph']:.4g} deg/h after; "
-             f"noise floor (Allan deviation at 100 s) {floor:.4g} deg/h."]
-    if not added:
-        lines.append("No candidate effect was both significant on the training run and helpful on the "
-                     "validation run; nothing was added.")
-    for i, e in enumerate(added, 1):
+def _findings(r: dict[str, Any]) -> str:
+    b, a = r["before"], r["after"]
+    fl = r["noise_floor"]
+    lines = [f"Declared model {r['declared_model']}: in-range validation std of 100-s means "
+             f"{b['validation_std100_dph']:.4g} deg/h before, {a['validation_std100_dph']:.4g} deg/h after; "
+             f"noise floor {fl['noise_floor_dph']:.4g} deg/h (90 % interval {fl['interval_dph'][0]:.3g}-"
+             f"{fl['interval_dph'][1]:.3g})."]
+    cov = a["validation_coverage"]
+    if cov < 1.0:
+        parts = []
+        for key, o in r["validation_range"]["outside"].items():
+            parts.append(f"{key} {100 * o['fraction_below']:.0f} % below / {100 * o['fraction_above']:.0f} % above "
+                         f"the training range [{o['train_range'][0]:.3g}, {o['train_range'][1]:.3g}] "
+                         f"(validation reaches {o['validation_range'][0]:.3g} .. {o['validation_range'][1]:.3g})")
+        lines.append(f"{100 * cov:.1f} % of the validation run lies inside the training range of every declared "
+                     f"input; diagnosis uses that part. Outside: " + "; ".join(parts) +
+                     f". Deployed (inputs clipped) on the whole run: std100 {b['validation_all_std100_dph']:.4g} "
+                     f"before, {a['validation_all_std100_dph']:.4g} after.")
+    if not r["effects_added"] and not r["effects_not_generalised"]:
+        lines.append("No candidate effect passed the training evidence (delta-BIC, HAC Wald, blocked "
+                     "cross-validation); nothing was added.")
+    for i, e in enumerate(r["effects_added"], 1):
         params = ", ".join(f"{k}={v}" for k, v in e["params"].items())
+        ev = e["evidence"]
         lines.append(f"{i}. Added {e['kind']}" + (f" ({params})" if params else "") +
-                     f": delta-BIC {e['evidence']['delta_bic']:.1f}, HAC Wald p {e['evidence']['hac_wald_p']:.2g}; "
-                     f"validation std100 now {e['validation_std100_dph']:.4g} deg/h.")
-        runner = e["evidence"].get("runner_up")
-        if runner and e["evidence"]["delta_bic"] - runner["delta_bic"] < AMBIGUOUS_DBIC:
-            lines.append(f"   {runner['kind']} explains this residual almost as well (delta-BIC "
-                         f"{runner['delta_bic']:.1f}): this data cannot tell the two apart; a run with a "
-                         f"different ramp pattern would.")
-    st = structure["validation"] if structure["validation"].get("testable") else structure["train"]
-    if verdict == "unexplained_structure_remains":
+                     f" on training evidence: delta-BIC {ev['delta_bic']:.1f}, HAC Wald p {ev['hac_wald_p']:.2g}, "
+                     f"cross-validated error -{100 * ev['cv_gain']:.0f} %; confirmed on validation "
+                     f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
+        runner = ev.get("runner_up")
+        if runner and ev.get("bic_margin_to_runner_up") is not None and ev["bic_margin_to_runner_up"] < 6.0:
+            lines.append(f"   {runner['kind']} ({', '.join(f'{k}={v}' for k, v in runner['params'].items())}) "
+                         "explains this residual almost as well: this data cannot tell the two apart; a run "
+                         "with a different ramp pattern would.")
+    for e in r["effects_not_generalised"]:
+        params = ", ".join(f"{k}={v}" for k, v in e["params"].items())
+        if not np.isfinite(e["validation_std100_with_dph"]):
+            lines.append(f"{e['kind']} ({params}) was chosen on the training run together with effects that did "
+                         "not generalise and is not significant on the training run without them; it is left out.")
+            continue
+        lines.append(f"{e['kind']} ({params}) was chosen on the training run but did not generalise: the "
+                     f"in-range validation std100 is {e['validation_std100_without_dph']:.4g} without it and "
+                     f"{e['validation_std100_with_dph']:.4g} with it; it is left out.")
+    st = r["structure"]["validation"] if r["structure"]["validation"].get("testable") else r["structure"]["train"]
+    ratio = st.get("ratio_to_noise_floor", float("nan"))
+    verdict = r["verdict"]
+    if verdict in ("unexplained_structure_remains", "partly_explained"):
         parts = []
         if "periodic" in st.get("failed_tests", []):
             parts.append(f"a periodic component of period {st['peak_period_s'] / 3600:.2f} h and amplitude "
@@ -380,25 +401,32 @@ def _findings(declared, before, after, added, structure, verdict, floor) -> str:
             parts.append(f"a trend of {st['trend_dph_per_h']:.3g} deg/h per hour")
         if "whiteness" in st.get("failed_tests", []):
             parts.append(f"correlated 100-s means (Ljung-Box p {st['ljung_box_p']:.2g})")
-        lines.append("Structure remains that no candidate explains: " + "; ".join(parts) +
-                     f". The validation std100 is {st['ratio_to_noise_floor']:.2f}x the noise floor. "
-                     "No terms were added for it because none helped on the validation run.")
+        lines.append(("Structure remains that no candidate explains" if verdict == "unexplained_structure_remains"
+                      else "The added effects helped but the channel is not fully explained") +
+                     (": " + "; ".join(parts) if parts else "") +
+                     f". The std100 is {ratio:.2f}x the noise floor ({r['verdict_judged_on']}).")
     elif verdict == "explained":
-        lines.append("What is left is consistent with the noise floor "
-                     f"({st.get('ratio_to_noise_floor', float('nan')):.2f}x).")
+        lines.append(f"What is left is consistent with the noise floor ({ratio:.2f}x, {r['verdict_judged_on']}).")
     else:
-        lines.append("The declared model is complete for this data: the residual is at the noise floor "
-                     f"({st.get('ratio_to_noise_floor', float('nan')):.2f}x).")
+        lines.append(f"The declared model is complete for this data: the residual is at the noise floor "
+                     f"({ratio:.2f}x, {r['verdict_judged_on']}).")
     return " ".join(lines)
 
 
 # --------------------------------------------------------------------------------------------
 # entry point
 
+def _poly_order(terms: list[str], probe: str) -> int:
+    pat = re.compile(r"^\(?" + re.escape(probe) + r"(-[-+\d.]+)?\)?(\^(\d+))?$")
+    orders = [int(m.group(3) or 1) for t in terms if (m := pat.match(t.replace(" ", "")))]
+    return max(orders) if orders else 1
+
+
 def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str,
                      latitude_deg: float | None, opts: dict[str, Any]):
-    """Fit the declared model once with the fitting module (to get its exact term list), then build
-    its design matrix on both runs.  Only models linear in their coefficients can be extended."""
+    """Fit the declared model once with the fitting module (to get its exact term list and the
+    training ranges of its inputs), then build its design matrix on both runs: as measured (for the
+    diagnosis) and, on the validation run, with inputs clipped to the training ranges (as deployed)."""
     from bench.fit.formula import compiled_from_recipe
     from bench.fit.models import fit_model, prepare_fit_data
 
@@ -409,19 +437,26 @@ def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str
                          f"{d.get('kind', 'not linear')} — use static, dynamic, patent37, hrg or a formula")
     window = d["rate_filter"]["window_s"]
     compiled = compiled_from_recipe(d["terms"], d.get("formula", ""), window)
-    out = []
-    for ds, clip in ((train, None), (validate, declared.validity.get("signals"))):
+    ranges = declared.validity.get("signals") or {}
+    prepared = []
+    for ds in (train, validate):
         work, y, _ = prepare_fit_data(ds, channel, latitude_deg=latitude_deg, rate_window_s=window)
         if "table_rate_dps" in ds:
             # the table's rate is a true input along the channel under test (rate tests align them)
             y = y - np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=float)) * 3600.0
-        # on the held-out run the declared model's inputs are clipped to the training ranges, as the
-        # stored model would be applied (never a silent extrapolation)
-        x, _ = compiled.design(work, clip=clip)
-        out.append((x, y))
-    (x_tr, y_tr), (x_va, y_va) = out
+        prepared.append((work, y, compiled.signals(work)))
+    (w_tr, y_tr, s_tr), (w_va, y_va, s_va) = prepared
+    x_tr, _ = compiled.design(w_tr, signals=s_tr)
+    x_va, _ = compiled.design(w_va, signals=s_va)
+    x_dep, _ = compiled.design(w_va, clip=ranges, signals=s_va)
+    in_range = in_range_mask(s_va, ranges, len(validate))
+    usable = np.isfinite(y_va) & np.all(np.isfinite(x_va), axis=1)
+    keys = [k for k in ranges if k in s_tr]
+    sig_tr = np.column_stack([s_tr[k] for k in keys]) if keys else np.zeros((len(train), 0))
+    design = Design(list(compiled.names), x_tr, x_va, validate_deployed=x_dep, in_range=in_range,
+                    outside=outside_summary(s_va, ranges, usable), train_signals=sig_tr)
     probe = d.get("probe") or _first_probe(compiled, train)
-    return declared, Design(list(compiled.names), x_tr, x_va), y_tr, y_va, probe, window
+    return declared, design, y_tr, y_va, probe, window
 
 
 def _first_probe(compiled, ds: Dataset) -> str:
@@ -435,17 +470,29 @@ def _first_probe(compiled, ds: Dataset) -> str:
     return names[0]
 
 
+def check_lengths(train: Dataset, validate: Dataset) -> None:
+    """Clear error naming the minimum length instead of a failure deep inside the statistics."""
+    for label, ds, minimum in (("training", train, MIN_TRAIN_S), ("validation", validate, MIN_VALIDATE_S)):
+        t = np.asarray(ds.time, dtype=float) if "time_s" in ds else np.array([])
+        span = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+        if span < minimum:
+            raise ValueError(f"close-loop needs at least {minimum:.0f} s of {label} data "
+                             f"({minimum / BLOCK_S:.0f} blocks of {BLOCK_S:.0f} s); the {label} run covers "
+                             f"{span:.0f} s ({len(t)} samples)")
+
+
 def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[str] | None = None,
                latitude_deg: float | None = None, **fit_opts: Any) -> dict[str, Any]:
     """Run the close-loop analysis for each channel; returns the JSON-ready report (residual arrays
     for plotting are kept under the private key ``_residuals`` of each channel)."""
+    check_lengths(train, validate)
     channels = channels or train.gyro_channels()
     if latitude_deg is None and "latitude_deg" in train.meta:
         latitude_deg = float(train.meta["latitude_deg"])
     report: dict[str, Any] = {"model": model, "latitude_deg": latitude_deg, "block_s": BLOCK_S,
                               "thresholds": {"hac_p_max": P_MAX, "delta_bic_min": DBIC_MIN,
-                                             "min_validation_gain": MIN_VALIDATION_GAIN,
-                                             "structure_ratio": STRUCTURE_RATIO},
+                                             "min_cv_gain": MIN_CV_GAIN, "max_effects": MAX_EFFECTS,
+                                             "at_floor_ratio": AT_FLOOR_RATIO},
                               "channels": {}}
     for ch in channels:
         missing = [f"gyro_{ch}" for ds in (train, validate) if f"gyro_{ch}" not in ds]
@@ -453,8 +500,10 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
             raise ValueError(f"channel {ch!r}: column gyro_{ch} missing from the "
                              f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
         declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
+        terms = [t["expr"] for t in declared.definition["terms"]]
         ctx = fx.Context(channel=ch, primary_probe=probe, probes=tuple(train.temp_names()),
-                         channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window)
+                         channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
+                         poly_order=_poly_order(terms, probe))
         report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
     return report
 

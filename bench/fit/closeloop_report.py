@@ -9,23 +9,14 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.fit.report import _CSS, _new_figure, _thin, figure_to_img, html_table, plot_adev, plot_residuals
-
-
-def _before_after_vs_time(t: np.ndarray, before: np.ndarray, after: np.ndarray, title: str) -> str:
-    fig, ax = _new_figure(title, "time (h)", "residual (deg/h)")
-    s = _thin(t.size)
-    ax.plot(t[s] / 3600.0, before[s], lw=0.7, label="before (declared model)")
-    ax.plot(t[s] / 3600.0, after[s], lw=0.7, label="after (with effects added)")
-    ax.axhline(0.0, color="k", lw=0.5)
-    ax.legend(loc="best", fontsize=8)
-    return figure_to_img(fig, title)
+from bench.fit.report import _CSS, html_table, plot_adev, plot_before_after, plot_residuals
 
 
 def _section(label: str, data: Dataset, before: np.ndarray, after: np.ndarray, probe: str, window_s: float) -> str:
     t = np.asarray(data.time, float)
     parts = [f"<h3>{html.escape(label)} run</h3>",
-             _before_after_vs_time(t, before, after, f"{label}: residual against time")]
+             plot_before_after(t, before, after, f"{label}: residual against time (100-s means)",
+                               labels=("before (declared model)", "after (with effects added)"))]
     if f"temp_{probe}" in data:
         temp = np.asarray(data[f"temp_{probe}"], float)
         rate = prep.rate_c_per_min(t, temp, window_s)
@@ -46,14 +37,36 @@ def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: D
         body.append(f"<h2>Channel {html.escape(ch)}: {html.escape(r['verdict'])}</h2>")
         body.append(f"<p>{html.escape(r['findings'])}</p>")
         rows = [(k, r["before"][k], r["after"][k]) for k in r["before"]]
-        rows.append(("noise floor (ADEV at 100 s)", r["noise_floor_dph"], r["noise_floor_dph"]))
-        body.append(html_table(("metric (deg/h)", "before", "after"), rows, caption="error before / after"))
+        floor = r.get("noise_floor", {})
+        interval = floor.get("interval_dph", [float("nan"), float("nan")])
+        rows.append(("noise floor, std of 100-s means over the validation record", r["noise_floor_dph"],
+                     f"90 % interval {interval[0]:.4g} .. {interval[1]:.4g}"))
+        body.append(html_table(("metric (deg/h; validation_* = in-range part, validation_all_* = whole run as "
+                                "deployed)", "before", "after"), rows, caption="error before / after"))
+        outside = r.get("validation_range", {}).get("outside", {})
+        if outside:
+            body.append(html_table(
+                ("declared input", "training range", "validation range", "below (%)", "above (%)"),
+                [(k, f"{o['train_range'][0]:.4g} .. {o['train_range'][1]:.4g}",
+                  f"{o['validation_range'][0]:.4g} .. {o['validation_range'][1]:.4g}",
+                  100 * o["fraction_below"], 100 * o["fraction_above"]) for k, o in outside.items()],
+                caption=f"validation outside the training range (coverage {100 * r['validation_range']['coverage']:.1f} %)"))
+        if r.get("decisions"):
+            body.append(html_table(("decision", "run used"), list(r["decisions"].items()),
+                                   caption="which decision used which run"))
         if r["effects_added"]:
             body.append(html_table(
-                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "validation std100 (deg/h)"),
+                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "CV gain", "validation std100 (deg/h)"),
                 [(i, e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), ", ".join(e["terms"]),
-                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["validation_std100_dph"])
-                 for i, e in enumerate(r["effects_added"], 1)], caption="effects added, in order"))
+                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["evidence"].get("cv_gain", float("nan")),
+                  e["validation_std100_dph"])
+                 for i, e in enumerate(r["effects_added"], 1)], caption="effects added (chosen on train, confirmed on validation)"))
+        if r.get("effects_not_generalised"):
+            body.append(html_table(
+                ("kind", "parameters", "status", "validation std100 with / without (deg/h)"),
+                [(e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), e["status"],
+                  f"{e['validation_std100_with_dph']:.4g} / {e['validation_std100_without_dph']:.4g}")
+                 for e in r["effects_not_generalised"]], caption="chosen on train, left out"))
         body.append(html_table(("term", "coefficient"), list(r["final_coefficients"].items()),
                                caption="final model coefficients"))
         residuals = r.get("_residuals")

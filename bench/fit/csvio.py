@@ -41,12 +41,12 @@ import csv
 import io
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from bench.errors import DataFormatError
+from bench.files import write_text_atomic
 from bench.fit.base import Dataset, format_channel_probes, parse_channel_probes
 from bench.signal.geometry import DEFAULT_ORIENTATION, validate_canonical_code
 
@@ -489,13 +489,4 @@ def write_csv(dataset: Dataset, path: str | os.PathLike) -> None:
     text = format_csv(dataset)
     # round-trip guard: what we write must read back (catches e.g. non-increasing time_s)
     parse_csv_text(text, source=str(path))
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text_atomic(path, text, newline="")

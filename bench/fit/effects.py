@@ -1,30 +1,39 @@
 """The library of candidate physical effects tested against a calibration residual.
 
-Each effect kind turns a dataset into one or more regressor columns, optionally for a value of a
-nonlinear parameter (a time constant, a threshold) that the close-loop search scans.  The kinds and
-the signature each one explains (calibration-notes section 3):
+Every effect is a *family*: a kind, the probe (or probe pair) it acts through, and at most one
+continuous nonlinear parameter (a time constant, a threshold, a width) that the close-loop search
+scans on a grid and refines.  A family turns the run's ``Inputs`` into regressor columns.  The kinds
+and the signature each one explains (calibration-notes section 3), each on EVERY probe:
 
-``thermal_lag``              bias follows a probe temperature through a first-order lag tau: the cubic
-                             f(T_lag) replaces f(T): columns (T_lag - t0)^j - (T - t0)^j, j = 1..3
-``gradient``                 a temperature difference between two probes (T_a - T_b)
-``rate``                     dT/dt of a probe (C/min)
-``rate_squared``             (dT/dt)^2
-``temp_rate_cross``          (T - t0) * dT/dt
-``hysteresis``               heating vs cooling: a relay state +1 after heating, -1 after cooling
-                             (switches when |dT/dt| exceeds a threshold, holds otherwise)
-``warmup``                   exp(-t_on / tau) with t_on the time since the last power-on
-``g_sensitivity``            gravity projection on the body axes from the orientation column
-``scale_factor_temperature`` input rate (Earth rate along the channel + table rate) x (T - t0)
-``cross_channel_temperature`` another channel's temperature, cubic about t0 (the other channel's
-                             thermal bias coupled in through misalignment)
-``time_drift``               hours since the start of the run
+``thermal_lag(probe, tau)``     the sensing element follows ``probe`` through a first-order lag tau:
+                                the one column lag_tau(T_probe) - T_probe; and, on the declared
+                                model's own probe, through the declared polynomial's shape
+                                (form "polynomial"): columns (lag_tau(T) - 25)^j, j = 1..order (the
+                                declared powers stay in the design, so the span holds f(lag T) - f(T))
+The declared model's own probe is the default: a family on another probe (or a pair) pays one more
+searched parameter in the BIC.
+``gradient(a-b)``               a temperature difference between two probes
+``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
+``rate_squared(probe)``         (dT/dt)^2
+``temp_rate_cross(probe)``      (T - 25) dT/dt
+``hysteresis(probe, relay)``    heating vs cooling: a relay state +1 after heating faster than a
+                                threshold (C/min), -1 after cooling faster, held in between
+``hysteresis(probe, gradual)``  a memory that saturates over a temperature excursion (Duhem form):
+                                dm = (sign(dT) - m) |dT| / width, m in [-1, 1]
+``warmup(tau)``                 exp(-t_on / tau), t_on = time since the last power-on (since the start of
+                                the run when no ``power`` column is recorded)
+``g_sensitivity``               gravity projection on the body axes from the orientation column
+``scale_factor_temperature``    input rate (Earth rate along the channel + table rate) x (T - 25)
+``cross_channel_temperature``   another channel's temperature, cubic about 25 C
+``time_drift``                  hours since the start of the run
 
-All functions are pure: arrays in, arrays out.
+All builders are pure functions of ``Inputs`` (arrays in, arrays out); ``Inputs`` can be the full-rate
+run or its block means (the search runs on block means: the regressors are smooth).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from itertools import permutations
+from dataclasses import dataclass, replace
+from itertools import combinations
 from typing import Callable
 
 import numpy as np
@@ -32,11 +41,14 @@ from scipy.signal import lfilter
 
 from bench.fit import prep
 from bench.fit.base import Dataset
+from bench.signal import block_means, orientation_axes_per_sample, temperature_rate
 
 T0_C = 25.0
-LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0)
-WARMUP_TAUS_S = (60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0)
-HYSTERESIS_THRESHOLDS = (0.02, 0.05, 0.1, 0.2)   # C/min
+LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
+RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
+RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
+GRADUAL_WIDTHS_C = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)           # C
 
 
 @dataclass(frozen=True)
@@ -49,17 +61,124 @@ class Context:
     channels: tuple[str, ...]         # all gyro channels in the data
     latitude_deg: float | None
     rate_window_s: float = 300.0
+    poly_order: int = 3               # powers of the primary probe in the declared model
 
 
 @dataclass
-class Candidate:
+class Inputs:
+    """The physical inputs effects are built from, on one time grid (full rate or block means)."""
+
+    time: np.ndarray
+    temps: dict[str, np.ndarray]
+    rates: dict[str, np.ndarray]            # C/min, NaN -> 0 at the edges
+    since_on: np.ndarray                    # s since the last power-on (NaN while off)
+    power_known: bool
+    up: np.ndarray | None                   # (n, 3) up component of the body axes x, y, z
+    input_rate: np.ndarray | None           # deg/h along the channel (Earth + table)
+
+    @property
+    def dt(self) -> float:
+        return sample_period(self.time)
+
+    def rate(self, probe: str, window_s: float) -> np.ndarray:
+        """dT/dt (C/min) of a probe through a filter of ``window_s`` (cached per window)."""
+        key = (probe, round(float(window_s), 3))
+        cache = self.__dict__.setdefault("_rate_cache", {})
+        got = cache.get(key)
+        if got is None:
+            got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+        return got
+
+    def __len__(self) -> int:
+        return len(self.time)
+
+    def averaged(self, block_s: float) -> "Inputs":
+        """Block means over ``block_s`` seconds (``bench.signal.block_means``)."""
+        if self.dt >= 0.9 * block_s:
+            return self
+        cols = {f"T:{k}": v for k, v in self.temps.items()}
+        cols.update({f"R:{k}": v for k, v in self.rates.items()})
+        cols["since_on"] = self.since_on
+        if self.up is not None:
+            cols.update({f"up{i}": self.up[:, i] for i in range(3)})
+        if self.input_rate is not None:
+            cols["w_in"] = self.input_rate
+        bm = block_means(self.time, cols, block_s)
+        c = bm.columns
+        return Inputs(time=bm.time_s, temps={k: c[f"T:{k}"] for k in self.temps},
+                      rates={k: c[f"R:{k}"] for k in self.rates}, since_on=c["since_on"],
+                      power_known=self.power_known,
+                      up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
+                      input_rate=c.get("w_in"))
+
+
+@dataclass(frozen=True)
+class Family:
+    """One effect family: kind + probe/pair (+ form), with its continuous parameter's grid."""
+
     kind: str
-    params: dict[str, float | str]
-    build: Callable[[Dataset], dict[str, np.ndarray]]
-    n_nonlinear: int = 0              # number of searched nonlinear parameters (BIC penalty)
-    label: str = field(default="")
-    # for a searched time constant: rebuild this candidate at another tau (grid refinement)
-    at_tau: Callable[[float], "Candidate"] | None = None
+    fixed: tuple[tuple[str, str], ...]                       # e.g. (("probe", "t2"),)
+    builder: Callable[[Inputs, float | None], dict[str, np.ndarray]]
+    param: str | None = None                                 # name of the searched parameter
+    grid: tuple[float, ...] = ()
+    log_scale: bool = True
+    chosen_probe: bool = True      # the probe/pair was searched (False: the declared model's own probe)
+    options: int = 1               # how many probes / pairs it was chosen among
+
+    @property
+    def label(self) -> str:
+        return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in self.fixed) + ")"
+
+    def penalty(self, n_eff: float) -> float:
+        """BIC penalty of the family's searched parameters: ln(n_eff) for the continuous one, ln(number
+        of options) for the probe or pair chosen among the data's (a discrete model choice; none for
+        the declared model's own probe)."""
+        pen = np.log(n_eff) if self.param else 0.0
+        if self.fixed and self.chosen_probe and self.options > 1:
+            pen += np.log(self.options)
+        return float(pen)
+
+    @property
+    def n_nonlinear(self) -> int:
+        """Searched nonlinear parameters, for the BIC penalty: the continuous one, and the probe or
+        pair choice unless it is the declared model's own probe (the default, no choice made)."""
+        return (1 if self.param else 0) + (1 if self.fixed and self.chosen_probe else 0)
+
+    def at(self, value: float | None) -> "Effect":
+        return Effect(self, None if value is None else float(value))
+
+
+@dataclass(frozen=True)
+class Effect:
+    family: Family
+    value: float | None = None
+
+    @property
+    def kind(self) -> str:
+        return self.family.kind
+
+    @property
+    def params(self) -> dict[str, float | str]:
+        out: dict[str, float | str] = dict(self.family.fixed)
+        if self.family.param:
+            out[self.family.param] = _round(self.value)
+        return out
+
+    @property
+    def label(self) -> str:
+        return self.family.label + (f"[{self.family.param}={_round(self.value)}]" if self.family.param else "")
+
+    def columns(self, inputs: Inputs) -> dict[str, np.ndarray]:
+        return self.family.builder(inputs, self.value)
+
+    def with_value(self, value: float) -> "Effect":
+        return replace(self, value=float(value))
+
+
+def _round(v: float | None) -> float:
+    if v is None:
+        return float("nan")
+    return float(f"{v:.3g}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -72,31 +191,58 @@ def sample_period(time_s: np.ndarray) -> float:
 
 
 def first_order_lag(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Output of a first-order lag (time constant tau) driven by x, started at x[0].
-
-    Exact discretisation for a uniform sample period (the median period of the data)."""
+    """Output of a first-order lag (time constant tau) driven by x, started in equilibrium at x[0].
+    Exact discretisation for a uniform sample period (the median period of the data); missing input
+    samples are held at the previous value."""
+    x = np.asarray(x, dtype=np.float64)
+    if not np.all(np.isfinite(x)):
+        x = _hold_missing(x)
     dt = sample_period(time_s)
     a = np.exp(-dt / tau_s)
     y, _ = lfilter([1 - a], [1, -a], x, zi=[a * x[0]])
     return y
 
 
+def _hold_missing(x: np.ndarray) -> np.ndarray:
+    ok = np.isfinite(x)
+    if not ok.any():
+        return np.zeros_like(x)
+    idx = np.where(ok, np.arange(len(x)), 0)
+    np.maximum.accumulate(idx, out=idx)
+    out = x[idx]
+    out[: int(np.argmax(ok))] = x[int(np.argmax(ok))]
+    return out
+
+
 def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0) -> np.ndarray:
-    """dT/dt in C/min, the fitting module's one definition (``prep.rate_c_per_min``); NaN -> 0 at the
-    edges so a regressor column stays usable."""
-    return np.nan_to_num(prep.rate_c_per_min(time_s, temp, window_s), nan=0.0)
+    """dT/dt in C/min (``bench.signal.temperature_rate``, centred slope, as the declared models' rate
+    terms); NaN -> 0 at the edges so a regressor column stays usable."""
+    return np.nan_to_num(temperature_rate(time_s, temp, window_s, method="centred_slope"), nan=0.0)
 
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
     """+1 after heating faster than threshold, -1 after cooling faster than it; holds in between."""
-    state = np.zeros_like(rate)
     on = np.where(rate > threshold, 1.0, np.where(rate < -threshold, -1.0, np.nan))
-    # forward fill the last decided state; before any decision: 0
     idx = np.where(~np.isnan(on), np.arange(len(on)), 0)
     np.maximum.accumulate(idx, out=idx)
     state = on[idx]
     state[np.isnan(state)] = 0.0
     return state
+
+
+def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float) -> np.ndarray:
+    """Gradual (Duhem) hysteresis memory m in [-1, 1] driven by the filtered temperature change
+    dT = rate dt: m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width) at each step, so it
+    saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks."""
+    dT = np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0
+    a = np.exp(-np.abs(dT) / width_c)
+    drive = (1.0 - a) * np.sign(dT)
+    out = np.empty(len(dT))
+    m = 0.0
+    for i, (ai, di) in enumerate(zip(a.tolist(), drive.tolist())):
+        m = ai * m + di
+        out[i] = m
+    return out
 
 
 def time_since_power_on(ds: Dataset) -> np.ndarray:
@@ -116,106 +262,117 @@ def time_since_power_on(ds: Dataset) -> np.ndarray:
 
 def body_axes_enu(orientation: np.ndarray) -> np.ndarray:
     """Array (n, 3, 3): [k, i, :] = direction of body axis i (x, y, z) in East-North-Up."""
-    codes = np.asarray(orientation, dtype=object)
-    codes = np.where(codes == "", prep.ORIENTATION_DEFAULT, codes)
-    uniq, inverse = np.unique(codes, return_inverse=True)
-    table = np.array([prep.orientation_axes(str(code)) for code in uniq])
-    return table[inverse]
+    return orientation_axes_per_sample(np.asarray(orientation, dtype=object))
 
 
-def _orientation(ds: Dataset) -> np.ndarray:
-    if "orientation" in ds:
-        return ds["orientation"]
-    return np.full(len(ds), prep.ORIENTATION_DEFAULT, dtype=object)
+def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
+    """The inputs of every effect, at the run's own rate."""
+    t = np.asarray(ds.time, dtype=np.float64)
+    temps = {p: np.asarray(ds[f"temp_{p}"], dtype=np.float64) for p in ctx.probes if f"temp_{p}" in ds}
+    rates = {p: rate_c_per_min(v, t, ctx.rate_window_s) for p, v in temps.items()}
+    up = None
+    if "orientation" in ds and len(np.unique(ds["orientation"])) > 1:
+        up = body_axes_enu(ds["orientation"])[:, :, 2]
+    w_in = None
+    if ctx.latitude_deg is not None or "table_rate_dps" in ds:
+        w_in = np.zeros(len(t))
+        if ctx.latitude_deg is not None:
+            w_in = w_in + prep.earth_rate_reading(ds, ctx.channel, ctx.latitude_deg)
+        if "table_rate_dps" in ds:
+            w_in = w_in + np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=np.float64)) * 3600.0
+    return Inputs(time=t, temps=temps, rates=rates, since_on=time_since_power_on(ds),
+                  power_known="power" in ds, up=up, input_rate=w_in)
 
 
 # --------------------------------------------------------------------------------------------
 # the library
 
-def candidates(ctx: Context, ds: Dataset) -> list[Candidate]:
-    """Every (kind, parameter) candidate applicable to this data."""
-    out: list[Candidate] = []
-    p = ctx.primary_probe
-    w = ctx.rate_window_s
-    tcol = lambda name: f"temp_{name}"  # noqa: E731
+def families(ctx: Context, inputs: Inputs) -> list[Family]:
+    """Every effect family applicable to these inputs."""
+    out: list[Family] = []
+    probes = [p for p in ctx.probes if p in inputs.temps]
+    order = max(1, ctx.poly_order)
 
-    def rate_of(d: Dataset, name: str) -> np.ndarray:
-        return rate_c_per_min(d[tcol(name)], d.time, w)
+    own = ctx.primary_probe
+    for p in probes:
+        def lag_linear(x: Inputs, tau, p=p):
+            # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
+            v = first_order_lag(x.temps[p], x.time, tau)
+            return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
+        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own))
+    if own in probes and order > 1:
+        def lag_shape(x: Inputs, tau, p=own):
+            # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
+            v = first_order_lag(x.temps[p], x.time, tau) - T0_C
+            return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
+                    for j in range(1, order + 1)}
+        out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", LAG_TAUS_S,
+                          chosen_probe=False))
 
-    def lag_candidate(tau: float) -> Candidate:
-        def lag(d):
-            u = d[tcol(p)] - T0_C
-            v = first_order_lag(d[tcol(p)], d.time, tau) - T0_C
-            name = f"lag{tau:.0f}({p})"
-            return {f"({name}-25)^{j}-({p}-25)^{j}": v ** j - u ** j for j in (1, 2, 3)}
-        # the declared model's own temperature, lagged (a lag towards another probe is a gradient)
-        return _labelled(Candidate("thermal_lag", {"probe": p, "tau_s": round(tau, 1)}, lag, 1, at_tau=lag_candidate))
+    for a, b in combinations(probes, 2):
+        out.append(Family("gradient", (("probes", f"{a}-{b}"),),
+                          lambda x, _v, a=a, b=b: {f"({a}-{b})": x.temps[a] - x.temps[b]}))
 
-    out.extend(lag_candidate(tau) for tau in LAG_TAUS_S)
+    for p in probes:
+        mine = p != own
+        out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+        out.append(Family("rate_squared", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.rate(p, w) ** 2},
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+        out.append(Family("temp_rate_cross", (("probe", p),),
+                          lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": (x.temps[p] - T0_C) * x.rate(p, w)},
+                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+        out.append(Family("hysteresis", (("probe", p), ("form", "relay")),
+                          lambda x, thr, p=p: {f"relay{thr:.3g}(d{p})": relay_state(x.rates[p], thr)},
+                          "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine))
+        widths = _widths_for(inputs.temps[p])
+        if widths:
+            out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
+                              lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
+                              "width_c", widths, chosen_probe=mine))
 
-    for a, b in permutations(ctx.probes, 2):
-        if a < b:
-            out.append(Candidate("gradient", {"probes": f"{a}-{b}"},
-                                 lambda d, a=a, b=b: {f"({a}-{b})": d[tcol(a)] - d[tcol(b)]}))
+    def warm(x: Inputs, tau):
+        return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
+    duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
+    warm_taus = tuple(t for t in WARMUP_TAUS_S if t <= duration / 3.0)
+    if len(warm_taus) >= 2:
+        out.append(Family("warmup", (), warm, "tau_s", warm_taus))
 
-    for probe in ctx.probes:
-        out.append(Candidate("rate", {"probe": probe},
-                             lambda d, probe=probe: {f"d{probe}": rate_of(d, probe)}))
-        out.append(Candidate("rate_squared", {"probe": probe},
-                             lambda d, probe=probe: {f"d{probe}^2": rate_of(d, probe) ** 2}))
-        out.append(Candidate("temp_rate_cross", {"probe": probe},
-                             lambda d, probe=probe: {f"({probe}-25)*d{probe}":
-                                                     (d[tcol(probe)] - T0_C) * rate_of(d, probe)}))
+    if inputs.up is not None:
+        out.append(Family("g_sensitivity", (), lambda x, _v: {f"g_{ax}": x.up[:, i] for i, ax in enumerate("xyz")}))
 
-    for thr in HYSTERESIS_THRESHOLDS:
-        out.append(Candidate("hysteresis", {"probe": p, "threshold_c_per_min": thr},
-                             lambda d, thr=thr: {f"relay{thr}(d{p})": relay_state(rate_of(d, p), thr)}, 1))
+    if inputs.input_rate is not None and np.nanstd(inputs.input_rate) > 0:
+        p = ctx.primary_probe
+        out.append(Family("scale_factor_temperature", (("probe", p),),
+                          lambda x, _v: {f"w_in*({p}-25)": x.input_rate * (x.temps[p] - T0_C)}))
 
-    if "power" in ds:
-        def warmup_candidate(tau: float) -> Candidate:
-            def warm(d):
-                since = time_since_power_on(d)
-                return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-since / tau), nan=0.0)}
-            return _labelled(Candidate("warmup", {"tau_s": round(tau, 1)}, warm, 1, at_tau=warmup_candidate))
-
-        out.extend(warmup_candidate(tau) for tau in WARMUP_TAUS_S)
-
-    if "orientation" in ds and len(np.unique(ds["orientation"])) > 1:
-        def gravity(d):
-            up = body_axes_enu(_orientation(d))[:, :, 2]       # up component of each body axis
-            return {f"g_{ax}": up[:, i] for i, ax in enumerate("xyz")}
-        out.append(Candidate("g_sensitivity", {}, gravity))
-
-    if ctx.latitude_deg is not None or "table_rate_dps" in ds:
-        def sf(d):
-            w_in = np.zeros(len(d))
-            if ctx.latitude_deg is not None:
-                w_in = w_in + prep.earth_rate_reading(d, ctx.channel, ctx.latitude_deg)
-            if "table_rate_dps" in d:
-                w_in = w_in + np.nan_to_num(d["table_rate_dps"]) * 3600.0
-            return {f"w_in*({p}-25)": w_in * (d[tcol(p)] - T0_C)}
-        out.append(Candidate("scale_factor_temperature", {"probe": p}, sf))
-
-    for other in _other_channel_temperatures(ctx):
-        def cross(d, other=other):
-            u = d[tcol(other)] - T0_C
+    for other in _other_channel_temperatures(ctx, probes):
+        def cross(x: Inputs, _v, other=other):
+            u = x.temps[other] - T0_C
             return {f"({other}-25)": u, f"({other}-25)^2": u ** 2, f"({other}-25)^3": u ** 3}
-        out.append(Candidate("cross_channel_temperature", {"probe": other}, cross))
+        out.append(Family("cross_channel_temperature", (("probe", other),), cross))
 
-    out.append(Candidate("time_drift", {}, lambda d: {"t_hours": (d.time - d.time[0]) / 3600.0}))
-    return [_labelled(c) for c in out]
+    out.append(Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0}))
+    counts: dict[tuple, int] = {}
+    for f in out:
+        key = (f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")
+        counts[key] = counts.get(key, 0) + 1
+    return [replace(f, options=counts[(f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")]) for f in out]
 
 
-def _labelled(c: Candidate) -> Candidate:
-    c.label = c.kind + "(" + ", ".join(f"{k}={v}" for k, v in c.params.items()) + ")"
-    return c
+def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
+    """Gradual-hysteresis widths that saturate within the run's excursions: up to a quarter of the
+    probe's temperature span (a wider memory never saturates and is only a slow drift)."""
+    t = temp[np.isfinite(temp)]
+    span = float(np.ptp(t)) if len(t) else 0.0
+    return tuple(w for w in GRADUAL_WIDTHS_C if w <= span / 4.0)
 
 
-def _other_channel_temperatures(ctx: Context) -> list[str]:
+def _other_channel_temperatures(ctx: Context, probes: list[str]) -> list[str]:
     """Temperatures that belong to other channels: ``temp_<other channel>`` (e.g. ``temp_y`` while
     fitting ``gyro_x``).  Probes not tied to a channel are covered by ``gradient`` instead."""
     channel_names = set(ctx.channels) | {"x", "y", "z"}
-    return [c for c in ctx.probes if c in channel_names and c != ctx.channel and c != ctx.primary_probe]
+    return [c for c in probes if c in channel_names and c != ctx.channel and c != ctx.primary_probe]
 
 
 KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",

@@ -39,7 +39,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -47,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from bench.errors import DataFormatError
+from bench.files import temp_beside
 from bench.fit.base import FitResult
 from bench.jsonsafe import jsonable as _jsonable
 from bench.signal import temperature_rate
@@ -144,7 +144,7 @@ def save_export(doc: dict[str, Any], directory: str | os.PathLike) -> Path:
     doc = dict(doc, revision=rev)
     text = json.dumps(doc, indent=2, allow_nan=False, sort_keys=False) + "\n"
     path = directory / f"{gyro_id}.r{rev:04d}.json"
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=directory)
+    fd, tmp = temp_beside(path)
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)

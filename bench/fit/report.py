@@ -1,9 +1,12 @@
 """Self-contained HTML report of fitted models (no external resources: plots are base64 PNG made with
 matplotlib's Agg canvas, no CDN, no scripts).
 
-Reusable pieces (the close-the-loop feature uses them): ``plot_temperatures``, ``plot_bias``,
+Reusable pieces (the close-the-loop feature uses them): ``plot_temperatures``, ``plot_before_after``,
 ``plot_residuals``, ``plot_adev`` return an ``<img>`` HTML snippet; ``html_table`` and
 ``coefficient_table`` return escaped ``<table>`` snippets; ``series_metrics`` returns the numbers.
+
+Plots are drawn for the full width of the page (``_CSS``).  Before and after are drawn as 100-s means
+in two panels sharing one scale, so the one does not hide the other.
 
 Metrics (calibration-notes lessons 6, 7): RMS, peak-to-peak, bias stability as the std of 100-s means
 (GJB 2426A convention), and the minimum of the overlapping Allan deviation (allantools ``oadev``,
@@ -35,6 +38,8 @@ Prediction = tuple[np.ndarray, np.ndarray]
 PredictFn = Callable[[FitResult, Dataset], Prediction]
 
 MAX_PLOT_POINTS = 4000
+FIGURE_WIDTH_IN = 12.0          # drawn for the full page width (img width 100 %)
+BLOCK_S = 100.0                 # before / after plots show means over this many seconds
 
 
 # --------------------------------------------------------------------------------------------
@@ -51,7 +56,7 @@ def figure_to_img(fig: Figure, alt: str) -> str:
 
 
 def _new_figure(title: str, xlabel: str, ylabel: str) -> tuple[Figure, Any]:
-    fig = Figure(figsize=(8.0, 3.2))
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 3.4))
     ax = fig.add_subplot(1, 1, 1)
     ax.set_title(title)
     ax.set_xlabel(xlabel)
@@ -75,22 +80,28 @@ def plot_temperatures(dataset: Dataset, title: str = "Temperatures") -> str:
     return figure_to_img(fig, title)
 
 
-def plot_bias(time_s: np.ndarray, raw: np.ndarray, compensated: np.ndarray, title: str,
-              unit: str = "deg/h", flagged: np.ndarray | None = None) -> str:
-    """Raw and compensated series against time (mean of raw removed for the raw curve, as the paper
-    plots it); flagged samples (outside the model's validity) marked in red."""
-    t = np.asarray(time_s, float) / 3600.0
-    raw = np.asarray(raw, float)
-    comp = np.asarray(compensated, float)
-    fig, ax = _new_figure(title, "time (h)", unit)
-    s = _thin(t.size)
-    ax.plot(t[s], (raw - np.mean(raw))[s], lw=0.8, label="raw - mean")
-    ax.plot(t[s], comp[s], lw=0.8, label="compensated")
-    if flagged is not None and np.any(flagged):
-        f = np.nonzero(np.asarray(flagged, bool))[0]
-        f = f[_thin(f.size)]
-        ax.plot(t[f], comp[f], "r.", ms=2, label="outside validity")
-    ax.legend(loc="best", fontsize=8)
+def plot_before_after(time_s: np.ndarray, before: np.ndarray, after: np.ndarray, title: str,
+                      unit: str = "deg/h", labels: tuple[str, str] = ("before", "after"),
+                      segments: list[slice] | None = None, block_s: float = BLOCK_S) -> str:
+    """``before`` and ``after`` against time as ``block_s``-s means (each block inside one segment, see
+    ``bench.signal.block_means``), in two panels one above the other sharing both axes: the change in
+    spread reads at a glance and neither series hides the other.  Each panel says its std of the means."""
+    t = np.asarray(time_s, float)
+    bm = block_means(t, {"before": np.asarray(before, float), "after": np.asarray(after, float)}, block_s, segments)
+    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.8))
+    axes = fig.subplots(2, 1, sharex=True, sharey=True)
+    for ax, key, label, color in zip(axes, ("before", "after"), labels, ("C0", "C1")):
+        y = bm.columns[key]
+        finite = np.isfinite(y)
+        std = float(np.std(y[finite], ddof=1)) if finite.sum() > 1 else float("nan")
+        for seg in bm.segments or [slice(0, y.size)]:          # no line across a gap between segments
+            ax.plot(bm.time_s[seg] / 3600.0, y[seg], lw=1.0, color=color, marker=".", ms=2)
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_ylabel(unit)
+        ax.grid(True, alpha=0.3)
+        ax.set_title(f"{label}: {block_s:g}-s means, std {std:.3g} {unit}", fontsize=10, loc="left")
+    axes[0].figure.suptitle(title)
+    axes[-1].set_xlabel("time (h)")
     return figure_to_img(fig, title)
 
 
@@ -217,11 +228,11 @@ def _unit_of(result: FitResult) -> str:
 # --------------------------------------------------------------------------------------------
 
 _CSS = """
-body{font-family:sans-serif;margin:1.5em;max-width:70em}
+body{font-family:sans-serif;margin:1.5em}
 table{border-collapse:collapse;margin:0.6em 0}
 th,td{border:1px solid #bbb;padding:2px 8px;text-align:right}
 th{background:#eee} caption{font-weight:bold;text-align:left}
-img{display:block;margin:0.4em 0;max-width:100%}
+img{display:block;margin:0.4em 0;width:100%;height:auto}
 .note{color:#555;font-size:90%}
 """
 
@@ -236,11 +247,12 @@ def _dataset_section(label: str, result: FitResult, dataset: Dataset, pred: Pred
     values, flagged = (np.asarray(a) for a in pred)
     residual = measured - values
     name = f"{result.model} / {result.channel} - {label}"
+    segs = run_segments(t, dataset.columns.get("run"))
     parts = [f"<h3>{html.escape(name)}</h3>",
-             plot_bias(t, measured, residual, f"{name}: raw vs compensated", unit, flagged)]
+             plot_before_after(t, measured - np.nanmean(measured), residual, f"{name}: raw vs compensated", unit,
+                               ("raw - mean", "compensated"), segs)]
     temp, temp_label = _temperature_for(result, dataset)
     if temp is not None:
-        segs = run_segments(t, dataset.columns.get("run"))
         method, window = _rate_regressor(result)
         finite = np.isfinite(temp)
         if finite.sum() >= 2 and not finite.all():    # missed probe readings: bridge them for the plot

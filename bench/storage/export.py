@@ -12,7 +12,8 @@
   around each second (a probe samples a continuous temperature; holding the previous reading would
   delay it by up to a read period, which at an accelerated clock is minutes of bench time); NaN
   where those readings are more than ``max_age_s`` apart or the second lies beyond the last one;
-* ``chamber_pv``, ``chamber_sp``, ``axis1_pos``, ``axis2_pos``, ``psu_v``, ``psu_a``, ``power_w``,
+* ``chamber_pv``, ``chamber_sp`` (the target), ``chamber_ramp_sp`` (the set point the controller
+  follows now: it moves along a ramp), ``axis1_pos``, ``axis2_pos``, ``psu_v``, ``psu_a``, ``power_w``,
   ``psu_on`` (1/0): nearest previous telemetry sample (NaN when older than ``max_age_s`` or five
   times the device's usual telemetry interval, whichever is longer);
 * ``orientation``, ``segment_kind`` (str), ``temp_point_c``, ``repetition``, ``outer_deg``,
@@ -33,6 +34,11 @@ from bench.storage.models import Gyro, ProbeReadingRow, Run, Segment, Telemetry
 from bench.storage.reader import read_frames, second_means
 
 _TO_DPH = {"deg/s": 3600.0, "rad/s": 180.0 / math.pi * 3600.0, "deg/h": 1.0}
+
+
+def dph_per_unit(units: str) -> float | None:
+    """deg/h per one unit of the gyro's wire output (``deg/s``, ``rad/s``, ``deg/h``); None when unknown."""
+    return _TO_DPH.get(units)
 
 
 def gyro_units(db: Database, run_id: int) -> str:
@@ -98,7 +104,8 @@ def _probe_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -
 
 def _telemetry_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -> dict[str, np.ndarray]:
     tm = Telemetry
-    wanted = {"chamber": [("chamber_pv", tm.chamber_pv), ("chamber_sp", tm.chamber_sp)],
+    wanted = {"chamber": [("chamber_pv", tm.chamber_pv), ("chamber_sp", tm.chamber_sp),
+                          ("chamber_ramp_sp", tm.chamber_ramp_sp)],
               "turntable": [("axis1_pos", tm.axis1_pos), ("axis2_pos", tm.axis2_pos)],
               "psu": [("psu_v", tm.psu_volts), ("psu_a", tm.psu_amps), ("psu_on", tm.psu_on)]}
     cols: dict[str, np.ndarray] = {}

@@ -1,5 +1,6 @@
-/* /ui/close-loop : start a close-the-loop analysis (POST /close-loop: declared model, training run,
-   held-out run); /ui/close-loop/{id} : its report (GET /close-loop/{id}, polled until done): per
+/* /ui/close-loop : past close-the-loop analyses (GET /close-loop, filtered by gyro, model and date:
+   verdict and validation error before / after per channel) and a form to start one (POST /close-loop:
+   declared model, training run, held-out run); /ui/close-loop/{id} : its report (GET /close-loop/{id}, polled until done): per
    channel the verdict, the findings, validation and training errors before / after the added effects
    (bar chart), the effects added and the final coefficients; on request the HTML report with its
    plots (GET /close-loop/{id}/report). */
@@ -12,7 +13,13 @@ const METRICS = [["validation_std100_dph", "validation std of 100-s means"], ["v
 function renderChannel(channel, r) {
   const metricRows = METRICS.map(([key, label]) => el("tr", el("td", label),
     el("td.num", fmtNum((r.before || {})[key], 5)), el("td.num", fmtNum((r.after || {})[key], 5))));
-  const effects = (r.effects_added || []).map((e) => el("li", typeof e === "object" ? JSON.stringify(e) : String(e)));
+  const effects = (r.effects_added || []).map((e) => {
+    const ev = e.evidence || {};
+    return el("tr", { dataset: { effect: e.kind } }, el("td", String(e.kind)), el("td.wrap", fmtValue(e.params, 4)),
+      el("td.wrap", Object.entries(e.coefficients || {}).map(([t, v]) => `${t} = ${fmtNum(v, 5)}`).join("; ") || "–"),
+      el("td.num", fmtNum(ev.delta_bic, 4)), el("td.num", fmtNum(ev.hac_wald_p, 3)),
+      el("td.num", fmtQty(e.validation_std100_dph, "deg/h")));
+  });
   const coeffs = Object.entries(r.final_coefficients || {}).map(([term, value]) =>
     el("tr", el("td", term), el("td.num", typeof value === "number" ? value.toPrecision(7) : String(value))));
   return el("div.card", { dataset: { channel } },
@@ -20,7 +27,9 @@ function renderChannel(channel, r) {
     el("p", r.findings || ""),
     el("p.muted", `declared ${r.declared_model}; primary probe ${r.primary_probe || "–"}; noise floor ${fmtNum(r.noise_floor_dph, 4)} deg/h`),
     el("table", el("thead", el("tr", el("th", "error (deg/h)"), el("th.num", "before"), el("th.num", "after"))), el("tbody", metricRows)),
-    el("h3", "Effects added"), effects.length ? el("ul", effects) : el("p.muted", "none"),
+    el("h3", "Effects added"), effects.length ? el("table.effects", el("thead", el("tr",
+      ["Effect", "Parameters", "Coefficients", "ΔBIC", "HAC Wald p", "Validation std of 100-s means after"].map((h) => el("th", h)))),
+    el("tbody", effects)) : el("p.muted", "none"),
     el("h3", "Final terms and coefficients"), el("table", el("tbody", coeffs)));
 }
 
@@ -84,9 +93,45 @@ async function poll() {
   }
 }
 
+function analysisRow(a) {
+  const req = a.request || {};
+  const chs = Object.entries(a.channels || {});
+  return el("tr", { dataset: { analysis: String(a.id), gyro: a.gyro_id || "", model: a.model || "" } },
+    el("td", el("a", { href: `/ui/close-loop/${a.id}` }, `#${a.id}`)),
+    el("td", a.gyro_id ? el("a", { href: `/ui/gyros/${encodeURIComponent(a.gyro_id)}` }, a.gyro_id) : "–"),
+    el("td.wrap", a.model || "–"),
+    el("td", el("a", { href: `/ui/runs/${req.train_run_id}` }, `#${req.train_run_id}`), " → ",
+      el("a", { href: `/ui/runs/${req.validation_run_id}` }, `#${req.validation_run_id}`)),
+    el("td", statusBadge(a.status)),
+    el("td.wrap", chs.length ? chs.map(([ch, c]) => el("div", `${ch}: `,
+      el("span", { class: `verdict-${c.verdict}` }, String(c.verdict || "").replace(/_/g, " ")),
+      c.effects_added.length ? ` (+ ${c.effects_added.join(", ")})` : "")) : a.error || "–"),
+    el("td.wrap", chs.length ? chs.map(([ch, c]) => el("div", `${ch}: ${fmtNum(c.before_validation_std100_dph, 3)} → `
+      + `${fmtNum(c.after_validation_std100_dph, 3)} deg/h`)) : "–"),
+    el("td", fmtTime(a.created_at)));
+}
+
+async function loadList(query = filterQuery()) {
+  try {
+    const doc = await api(`/close-loop?${query}`);
+    const rows = doc.analyses.map(analysisRow);
+    document.getElementById("analysis-list").replaceChildren(el("table.list#analyses-table",
+      el("thead", el("tr", ["Analysis", "Gyro", "Declared model", "Runs (training → held-out)", "Status", "Verdict",
+        "Validation std of 100-s means, before → after", "Requested"].map((h) => el("th", h)))),
+      el("tbody", rows.length ? rows : el("tr", el("td.muted", { colSpan: 8 }, "No analysis matches.")))));
+  } catch (err) {
+    reportError(err, "close-the-loop analyses");
+  }
+}
+
+function buildList() {
+  content().append(el("h2", "Past analyses"), filterBar("analysis-filters", loadList),
+    el("div#analysis-list", el("p.muted", "Loading…")));
+}
+
 function buildForm() {
   const num = (id, label) => el("label", { dataset: { field: id } }, label, el(`input#${id}`, { type: "number", min: "1", step: "1", required: true }), el("span.field-error"));
-  content().replaceChildren(el("form#closeloop-form.card", {
+  content().replaceChildren(el("h2", "New analysis"), el("form#closeloop-form.card", {
     on: {
       submit: async (ev) => {
         ev.preventDefault();
@@ -115,6 +160,8 @@ function buildForm() {
 initPage();
 if (ANALYSIS_ID === null) {
   buildForm();
+  buildList();
+  onTokenReady(() => loadList());
 } else if (!Number.isInteger(ANALYSIS_ID) || ANALYSIS_ID < 1) {
   showAlert(`Not an analysis id in the address: ${location.pathname}`);
 } else {

@@ -321,3 +321,56 @@ function onTokenReady(fn) {
   document.addEventListener("token-changed", fn);
   if (Token.get()) fn();
 }
+
+/* ---------------------------------------------------------------------------------- values */
+/* A stored value as text for a table cell: numbers with a few significant digits, lists joined,
+   objects as "key value" pairs; never raw JSON. */
+function fmtValue(value, digits = 6) {
+  if (value === null || value === undefined) return "–";
+  if (typeof value === "number") return fmtNum(value, digits);
+  if (typeof value === "boolean") return value ? "yes" : "no";
+  if (Array.isArray(value)) return value.map((v) => fmtValue(v, digits)).join(", ");
+  if (typeof value === "object") return Object.entries(value).map(([k, v]) => `${k} ${fmtValue(v, digits)}`).join("; ");
+  return String(value);
+}
+
+/* A number with its unit ("0.0123 deg/h"), or "–". */
+function fmtQty(value, unit, digits = 4) {
+  const text = fmtNum(value, digits);
+  return text === "–" ? text : `${text} ${unit}`;
+}
+
+/* ---------------------------------------------------------------------------------- list filters */
+/* A filter bar (gyro, model, from, to) whose values live in the page address (?gyro_id=&model=&
+   date_from=&date_to=), so a filtered list can be bookmarked.  onApply(query string for the API). */
+const FILTER_FIELDS = [["gyro_id", "Gyro", "text"], ["model", "Model", "text"], ["date_from", "From", "date"],
+  ["date_to", "To", "date"]];
+
+function filterQuery() {
+  const here = new URLSearchParams(location.search);
+  const q = new URLSearchParams();
+  for (const [name] of FILTER_FIELDS) {
+    const v = (here.get(name) || "").trim();
+    if (v) q.set(name, v);
+  }
+  return q;
+}
+
+function filterBar(id, onApply) {
+  const current = filterQuery();
+  const inputs = FILTER_FIELDS.map(([name, label, type]) => el("label", { dataset: { filter: name } }, label,
+    el(`input#${id}-${name}`, { type, name, value: current.get(name) || "" })));
+  const form = el(`form#${id}.filters.actions`, {
+    on: {
+      submit: (ev) => {
+        ev.preventDefault();
+        const q = new URLSearchParams();
+        for (const input of form.querySelectorAll("input")) if (input.value.trim()) q.set(input.name, input.value.trim());
+        history.replaceState(null, "", `${location.pathname}${q.toString() ? `?${q}` : ""}`);
+        onApply(q);
+      },
+    },
+  }, inputs, el("button", { type: "submit" }, "Filter"),
+  el("button.secondary", { type: "button", on: { click: () => { for (const i of form.querySelectorAll("input")) i.value = ""; form.requestSubmit(); } } }, "Clear"));
+  return form;
+}

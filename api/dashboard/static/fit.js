@@ -25,7 +25,7 @@ function renderFit(doc) {
     const units = entry.units || {};
     for (const [term, value] of Object.entries(entry.coefficients || {})) {
       coeffRows.push(el("tr", el("td", channel), el("td", term),
-        el("td.num", typeof value === "number" ? value.toPrecision(9) : JSON.stringify(value)), el("td", units[term] || "")));
+        el("td.num", typeof value === "number" ? value.toPrecision(9) : fmtValue(value)), el("td", units[term] || "")));
     }
   }
   fill(document.getElementById("fit"),

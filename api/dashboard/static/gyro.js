@@ -11,7 +11,7 @@ function coefficientTable(channels) {
     const units = entry.units || {};
     for (const [term, value] of Object.entries(entry.coefficients || {})) {
       rows.push(el("tr", { dataset: { channel, term } }, el("td", channel), el("td", term),
-        el("td.num", typeof value === "number" ? value.toPrecision(9) : JSON.stringify(value)), el("td", units[term] || "")));
+        el("td.num", typeof value === "number" ? value.toPrecision(9) : fmtValue(value)), el("td", units[term] || "")));
     }
   }
   return el("table.coefficients", el("thead", el("tr", ["Channel", "Term", "Value", "Unit"].map((h) => el("th", h)))), el("tbody", rows));
@@ -26,10 +26,10 @@ function validityText(channels) {
     let text;
     if (v.signals && typeof v.signals === "object") {
       text = Object.entries(v.signals).map(([name, range]) => (Array.isArray(range) && range.length === 2
-        ? `${name} ${fmtNum(range[0])} to ${fmtNum(range[1])}` : `${name} ${JSON.stringify(range)}`)).join(", ");
+        ? `${name} ${fmtNum(range[0])} to ${fmtNum(range[1])}` : `${name} ${fmtValue(range)}`)).join(", ");
       if (v.outside) text += ` (outside: ${v.outside})`;
     } else {
-      text = JSON.stringify(v);
+      text = fmtValue(v);
     }
     byText.set(text, [...(byText.get(text) || []), channel]);
   }

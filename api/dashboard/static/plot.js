@@ -5,8 +5,12 @@
      const plot = new LinePlot(canvas, { xLabel: "bench time (h)", yLabel: "°C" });
      plot.setData(xs, [{ name: "PV", values: ys, color: "#c0392b" }, ...]);
 
-   After each draw the canvas carries data-points (number of finite points drawn) and data-series
-   (the series names) so the page state can be checked. */
+   Zoom with the mouse wheel (about the pointer; x only), pan by dragging, double-click to see all;
+   the pointer shows a read-out of every series at the nearest sample.
+
+   After each draw the canvas carries data-points (number of finite points drawn), data-series
+   (the series names), data-view ("lo,hi" of the x range shown, empty when showing all) and
+   data-cursor (the read-out text) so the page state can be checked. */
 "use strict";
 
 const PLOT_COLORS = ["#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf"];
@@ -40,6 +44,12 @@ function tickLabel(v, step) {
   return v.toFixed(decimals);
 }
 
+function fmtPlotNum(v) {
+  if (!Number.isFinite(v)) return "–";
+  if (v !== 0 && (Math.abs(v) >= 1e5 || Math.abs(v) < 1e-3)) return v.toExponential(3);
+  return Number(v.toPrecision(5)).toString();
+}
+
 class LinePlot {
   constructor(canvas, options = {}) {
     this.canvas = canvas;
@@ -48,14 +58,99 @@ class LinePlot {
     this.series = [];
     canvas.style.width = "100%";
     canvas.style.height = `${this.options.height}px`;
+    this.view = null;        // [lo, hi] of x when zoomed or panned; null = everything
+    this.cursorPx = null;    // pointer x in CSS pixels inside the plot area
     this._resize = () => this.draw();
     window.addEventListener("resize", this._resize);
+    canvas.title = "wheel: zoom · drag: pan · double-click: all";
+    canvas.style.cursor = "crosshair";
+    this._wire();
   }
 
   setData(x, series) {
     this.x = x || [];
-    this.series = (series || []).map((s, i) => Object.assign({ color: PLOT_COLORS[i % PLOT_COLORS.length] }, s));
+    this.series = (series || []).filter(Boolean)
+      .map((s, i) => Object.assign({ color: PLOT_COLORS[i % PLOT_COLORS.length] }, s));
     this.draw();
+  }
+
+  /* x range of everything, and the range shown */
+  _fullX() {
+    return this._range(this.x);
+  }
+
+  _shownX() {
+    return this.view || this._fullX();
+  }
+
+  /* pixel -> data x with the last drawn scale */
+  _xAt(px) {
+    const sc = this._scale;
+    return sc ? sc.lo + ((px - sc.left) / sc.w) * (sc.hi - sc.lo) : null;
+  }
+
+  zoom(factor, centre) {
+    const [lo, hi] = this._shownX();
+    if (!Number.isFinite(lo) || !(hi > lo)) return;
+    const c = centre === undefined ? (lo + hi) / 2 : centre;
+    const [flo, fhi] = this._fullX();
+    let nlo = c - (c - lo) * factor;
+    let nhi = c + (hi - c) * factor;
+    if (nlo <= flo && nhi >= fhi) {
+      this.view = null;
+    } else {
+      this.view = [Math.max(nlo, flo - (fhi - flo)), Math.min(nhi, fhi + (fhi - flo))];
+    }
+    this.draw();
+  }
+
+  pan(dxData) {
+    const [lo, hi] = this._shownX();
+    if (!Number.isFinite(lo)) return;
+    this.view = [lo + dxData, hi + dxData];
+    this.draw();
+  }
+
+  reset() {
+    this.view = null;
+    this.draw();
+  }
+
+  _wire() {
+    const c = this.canvas;
+    const local = (ev) => ev.clientX - c.getBoundingClientRect().left;
+    c.addEventListener("wheel", (ev) => {
+      if (!this._scale) return;
+      ev.preventDefault();
+      this.zoom(ev.deltaY < 0 ? 0.8 : 1.25, this._xAt(local(ev)));
+    }, { passive: false });
+    let drag = null;
+    c.addEventListener("mousedown", (ev) => { drag = { px: local(ev) }; });
+    window.addEventListener("mouseup", () => { drag = null; });
+    c.addEventListener("mousemove", (ev) => {
+      const px = local(ev);
+      if (drag && this._scale && px !== drag.px) {
+        this.pan(this._xAt(drag.px) - this._xAt(px));
+        drag.px = px;
+      }
+      this.cursorPx = px;
+      this.draw();
+    });
+    c.addEventListener("mouseleave", () => { this.cursorPx = null; this.draw(); });
+    c.addEventListener("dblclick", () => this.reset());
+  }
+
+  /* index of the sample nearest to data x (x is increasing) */
+  _nearest(xv) {
+    const xs = this.x;
+    let lo = 0;
+    let hi = xs.length - 1;
+    while (hi - lo > 1) {
+      const mid = (lo + hi) >> 1;
+      if (xs[mid] < xv) lo = mid;
+      else hi = mid;
+    }
+    return Math.abs(xs[lo] - xv) <= Math.abs(xs[hi] - xv) ? lo : hi;
   }
 
   _range(values) {
@@ -84,13 +179,17 @@ class LinePlot {
     const pad = { left: 64, right: 12, top: 26, bottom: 38 };
     const w = cssWidth - pad.left - pad.right;
     const h = cssHeight - pad.top - pad.bottom;
-    const [xlo, xhi] = this._range(this.x);
+    const [xlo, xhi] = this._shownX();
     let ylo = Infinity;
     let yhi = -Infinity;
     for (const s of this.series) {
-      const [lo, hi] = this._range(s.values);
-      ylo = Math.min(ylo, lo);
-      yhi = Math.max(yhi, hi);
+      const n = Math.min(this.x.length, s.values.length);
+      for (let i = 0; i < n; i++) {
+        const v = s.values[i];
+        if (v === null || v === undefined || !Number.isFinite(v) || this.x[i] < xlo || this.x[i] > xhi) continue;
+        if (v < ylo) ylo = v;
+        if (v > yhi) yhi = v;
+      }
     }
     let drawn = 0;
     if (!Number.isFinite(xlo) || !Number.isFinite(ylo) || w < 20 || h < 20) {
@@ -99,7 +198,11 @@ class LinePlot {
       this._mark(0);
       return;
     }
-    const xt = niceTicks(xlo, xhi, Math.max(2, Math.floor(w / 90)));
+    // all data: round the x axis to nice ticks; zoomed: exactly the range asked for
+    const xt = this.view ? Object.assign(niceTicks(xlo, xhi, Math.max(2, Math.floor(w / 90))), { lo: xlo, hi: xhi })
+      : niceTicks(xlo, xhi, Math.max(2, Math.floor(w / 90)));
+    xt.ticks = xt.ticks.filter((v) => v >= xt.lo - 1e-12 && v <= xt.hi + 1e-12);
+    this._scale = { left: pad.left, w, lo: xt.lo, hi: xt.hi };
     const yt = niceTicks(ylo, yhi, Math.max(2, Math.floor(h / 40)));
     const X = (v) => pad.left + ((v - xt.lo) / (xt.hi - xt.lo)) * w;
     const Y = (v) => pad.top + h - ((v - yt.lo) / (yt.hi - yt.lo)) * h;
@@ -162,7 +265,7 @@ class LinePlot {
         if (pen) ctx.lineTo(X(xv), Y(yv));
         else ctx.moveTo(X(xv), Y(yv));
         pen = true;
-        drawn++;
+        if (xv >= xt.lo && xv <= xt.hi) drawn++;
       }
       ctx.stroke();
     }
@@ -180,12 +283,53 @@ class LinePlot {
       ctx.fillText(s.name, lx + 18, 10);
       lx += 26 + ctx.measureText(s.name).width;
     }
+    this._cursor(ctx, pad, w, h, X, Y);
     this._mark(drawn);
+  }
+
+  /* vertical line at the pointer, a dot on each series and their values at the nearest sample */
+  _cursor(ctx, pad, w, h, X, Y) {
+    this.canvas.dataset.cursor = "";
+    if (this.cursorPx === null || this.cursorPx < pad.left || this.cursorPx > pad.left + w || !this.x.length) return;
+    const i = this._nearest(this._xAt(this.cursorPx));
+    const xv = this.x[i];
+    const x = X(xv);
+    ctx.strokeStyle = "#555";
+    ctx.setLineDash([3, 3]);
+    ctx.beginPath();
+    ctx.moveTo(x, pad.top);
+    ctx.lineTo(x, pad.top + h);
+    ctx.stroke();
+    ctx.setLineDash([]);
+    const lines = [`${this.options.xLabel.replace(/\s*\(.*\)$/, "") || "x"}: ${fmtPlotNum(xv)}`];
+    for (const s of this.series) {
+      const v = s.values[i];
+      if (v === null || v === undefined || !Number.isFinite(v)) continue;
+      ctx.fillStyle = s.color;
+      ctx.beginPath();
+      ctx.arc(x, Y(v), 3, 0, 2 * Math.PI);
+      ctx.fill();
+      lines.push(`${s.name}: ${fmtPlotNum(v)} ${this.options.yLabel}`);
+    }
+    ctx.font = "12px system-ui, sans-serif";
+    const boxW = 12 + Math.max(...lines.map((t) => ctx.measureText(t).width));
+    const boxH = 6 + 15 * lines.length;
+    const bx = x + 10 + boxW > pad.left + w ? x - 10 - boxW : x + 10;
+    ctx.fillStyle = "rgba(255,255,255,0.92)";
+    ctx.strokeStyle = "#999";
+    ctx.fillRect(bx, pad.top + 4, boxW, boxH);
+    ctx.strokeRect(bx + 0.5, pad.top + 4.5, boxW, boxH);
+    ctx.fillStyle = "#222";
+    ctx.textAlign = "left";
+    ctx.textBaseline = "top";
+    lines.forEach((t, k) => ctx.fillText(t, bx + 6, pad.top + 8 + 15 * k));
+    this.canvas.dataset.cursor = lines.join("; ");
   }
 
   _mark(points) {
     this.canvas.dataset.points = String(points);
     this.canvas.dataset.series = this.series.map((s) => s.name).join(",");
+    this.canvas.dataset.view = this.view ? this.view.map((v) => fmtPlotNum(v)).join(",") : "";
   }
 }
 

@@ -53,7 +53,9 @@ function renderSummary(run) {
         ["ETA", run.eta_utc ? fmtTime(run.eta_utc) : "–"],
         ["Elapsed (bench)", fmtDuration(run.elapsed_bench_s)],
         ["Remaining (bench)", fmtDuration(run.remaining_bench_s)],
-        ["Estimated total", fmtDuration(run.estimated_total_bench_s)],
+        // one total that always agrees with the two lines above; the plan's own estimate only beside it
+        ["Total (elapsed + remaining)", el("span#total-bench", { dataset: {
+          elapsed: String(run.elapsed_bench_s ?? ""), remaining: String(run.remaining_bench_s ?? "") } }, totalText(run))],
         ["Worker", run.worker ? `${run.worker}${run.worker_alive === false ? " (not answering)" : ""}` : "–"],
       ]),
       dl([
@@ -68,6 +70,7 @@ function renderSummary(run) {
       ? el("p.muted", `Pending requests: ${run.pending_requests.map((r) => r.command).join(", ")} (the worker applies them at its next tick)`)
       : null);
   document.getElementById("run-status").textContent = run.status;
+  if (TERMINAL.includes(run.status)) document.getElementById("live").textContent = `run ${run.status}`;
   document.getElementById("run-progress").textContent = String(run.progress_percent);
   for (const [command, spec] of Object.entries(CONTROLS)) {
     document.getElementById(`btn-${command}`).disabled = !spec.allowed.includes(run.status);
@@ -75,7 +78,20 @@ function renderSummary(run) {
   renderLatest(run.latest || {});
   renderSampling(run.sampling);
   renderSteps(run);
-  document.getElementById("params-json").textContent = JSON.stringify(run.parameters, null, 2);
+  fill(document.getElementById("params"), paramTable(run.parameters || {}));
+}
+
+/* elapsed + remaining, and the plan's estimate when they differ noticeably (holds that waited for
+   stability, suspensions): never a total shorter than the time already elapsed. */
+function totalText(run) {
+  const e = run.elapsed_bench_s;
+  const r = run.remaining_bench_s;
+  if (!Number.isFinite(e) || !Number.isFinite(r)) return fmtDuration(run.estimated_total_bench_s);
+  const total = e + r;
+  const planned = run.estimated_total_bench_s;
+  const note = Number.isFinite(planned) && Math.abs(planned - total) > 0.02 * Math.max(planned, total)
+    ? ` (planned ${fmtDuration(planned)})` : "";
+  return `${fmtDuration(total)}${note}`;
 }
 
 function renderLatest(latest) {
@@ -93,7 +109,11 @@ function renderLatest(latest) {
   if (latest.gyro) {
     const m = latest.gyro.mean_1s;
     rows.push(["Gyro frames", `${latest.gyro.frames}`]);
-    if (m) rows.push(["Gyro 1-s mean", `${m.gyro.map((v) => fmtNum(v, 5)).join(", ")} (${m.output_unit}); sensor ${fmtNum(m.temperature_c)} °C`]);
+    if (m && m.gyro.some((v) => v !== null && v !== undefined)) {
+      rows.push(["Gyro 1-s mean", `${m.gyro.map((v) => fmtNum(v, 5)).join(", ")} (${m.output_unit}); sensor ${fmtNum(m.temperature_c)} °C`]);
+    } else if (m) {
+      rows.push(["Gyro 1-s mean", "no complete second stored yet"]);
+    }
     if (latest.gyro.mean_1s_error) rows.push(["Gyro", latest.gyro.mean_1s_error]);
   }
   if (latest.turntable) rows.push(["Turntable", `axis 1 ${fmtNum(latest.turntable.axis1_deg)}°, axis 2 ${fmtNum(latest.turntable.axis2_deg)}°`]);
@@ -116,6 +136,30 @@ function renderSampling(sampling) {
     : el("p.muted", "No readings yet."));
 }
 
+/* {a: 1, b: {c: 2}} -> rows "a | 1", "b.c | 2" */
+function paramTable(params) {
+  const rows = [];
+  const walk = (prefix, value) => {
+    if (value && typeof value === "object" && !Array.isArray(value)) {
+      for (const [k, v] of Object.entries(value)) walk(prefix ? `${prefix}.${k}` : k, v);
+    } else {
+      rows.push(el("tr", { dataset: { param: prefix } }, el("td", prefix), el("td", fmtValue(value))));
+    }
+  };
+  walk("", params);
+  return el("table#params-table", el("thead", el("tr", el("th", "Parameter"), el("th", "Value"))), el("tbody", rows));
+}
+
+function fitsTable(fits) {
+  const rows = Object.entries(fits).map(([stepIndex, f]) => el("tr", { dataset: { step: stepIndex } },
+    el("td.num", String(Number(stepIndex) + 1)), el("td", statusBadge(f.status)),
+    el("td", Object.entries(f.versions || {}).map(([m, v]) => `${m} v${v}`).join(", ") || "–"),
+    el("td.wrap", (f.fitted || []).join(", ") || "–"), el("td", f.accepted ? "yes" : "no"),
+    el("td.wrap", f.reason || f.error || Object.entries(f.errors || {}).map(([k, v]) => `${k}: ${v}`).join("; ") || "")));
+  return el("table#run-fits", el("thead", el("tr", ["Step", "Status", "Versions", "Fitted", "Accepted", "Notes"]
+    .map((h) => el("th", h)))), el("tbody", rows));
+}
+
 function renderSteps(run) {
   // bench times shown from the first step's start
   const t0 = (run.steps || []).map((s) => s.started_t).find((t) => t !== null && t !== undefined);
@@ -132,7 +176,7 @@ function renderSteps(run) {
       el("tbody", rows.length ? rows : el("tr", el("td.muted", { colSpan: 5 }, "The worker has not planned the steps yet.")))),
     extra.length ? el("ul", extra) : null,
     run.fits ? el("h3", "Fits of this run") : null,
-    run.fits ? el("pre#run-fits", JSON.stringify(run.fits, null, 2)) : null);
+    run.fits ? fitsTable(run.fits) : null);
 }
 
 /* -------------------------------------------------------------------------------- data + plots */
@@ -141,7 +185,7 @@ function appendData(columns) {
   if (!t.length) return 0;
   const s = state.series;
   if (state.t0 === undefined) state.t0 = Math.floor(t[0]);
-  const names = Object.keys(columns).filter((n) => n === "chamber_sp" || n === "chamber_pv"
+  const names = Object.keys(columns).filter((n) => n === "chamber_sp" || n === "chamber_pv" || n === "chamber_ramp_sp"
     || (n.startsWith("temp_") && n !== "temp_point_c") || n.startsWith("gyro_"));
   const before = s.t.length;
   for (let i = 0; i < t.length; i++) {
@@ -168,8 +212,12 @@ function appendData(columns) {
 function drawPlots() {
   const s = state.series;
   const pick = (prefix) => Object.keys(s.cols).filter((n) => n.startsWith(prefix)).sort();
+  // the controller's working set point moves along a ramp while the set-point register does not follow
+  // it: plot the ramping one when the chamber reports it
+  const ramp = (s.cols.chamber_ramp_sp || []).some((v) => v !== null && Number.isFinite(v));
   state.plots.chamber.setData(s.t, [
-    { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
+    ramp ? { name: "set point (ramping)", values: s.cols.chamber_ramp_sp, color: "#1f77b4", dash: [5, 4] }
+      : { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
     { name: "chamber air", values: s.cols.chamber_pv || [], color: "#d62728" },
   ]);
   const temps = pick("temp_").filter((n) => n !== "temp_point_c");
@@ -256,7 +304,8 @@ async function followLoop() {
       try {
         await followEvents(`/runs/${RUN_ID}/events?follow=true&after=${state.lastEventId}`, (kind, data) => {
           if (kind === "status") {
-            document.getElementById("live").textContent = `live: ${data.status}, ${fmtNum(data.progress_percent, 3)} %`;
+            // the progress figure is the bar above (refreshed now); this line only says the stream is live
+            document.getElementById("live").textContent = `live: ${data.status}`;
             scheduleRefresh();
           } else if (kind !== "end" && data && typeof data === "object" && data.id !== undefined) {
             addEvent(data);
@@ -316,7 +365,7 @@ function build() {
     el("p#data-info.muted"),
     el("div.card", el("h2", "Sampling"), el("div#sampling")),
     el("div.card", el("h2", "Steps"), el("div#steps")),
-    el("div.card", el("h2", "Parameters"), el("pre#params-json")));
+    el("div.card", el("h2", "Parameters"), el("div#params")));
   const xLabel = "bench time since the first recorded second (h)";
   state.plots.chamber = new LinePlot(document.getElementById("plot-chamber"), { xLabel, yLabel: "°C" });
   state.plots.probes = new LinePlot(document.getElementById("plot-probes"), { xLabel, yLabel: "°C" });

@@ -1,0 +1,482 @@
+"""Close the loop, step 2: choose the effects the declared model lacks, on the TRAINING run only.
+
+The search runs on block means: every effect column is built on a fine grid (10-s means of the
+inputs; the regressors are smooth) and averaged into 100-s evidence blocks, where the model is
+linear, the white noise is mostly gone and one point is about one thermal time step.
+
+Evidence that survives autocorrelation, all on TRAIN:
+
+* delta-BIC with the effective number of points n_eff = n (1 - rho) / (1 + rho) (rho: lag-1
+  autocorrelation of the 100-s residual of the larger model); the penalty counts every column and
+  every searched parameter: ln(n_eff) for a continuous one (time constant, width, threshold, filter
+  window), ln(number of options) for the probe or pair chosen (none for the declared model's own
+  probe);
+* a Wald test of the new coefficients with Newey-West (HAC) covariance;
+* blocked cross-validation: the training run is cut into contiguous segments; each is predicted by
+  the model fitted on the others, on the blocks where the declared inputs lie inside the range the
+  other segments cover (no extrapolation is scored).
+
+Step: for every family (kind x probe/pair/form) the continuous parameter is scanned on its grid and
+refined (bounded golden section on log scale) by the training sum of squares; families that pass
+the three gates (delta-BIC > 10, HAC p < 1e-3, cross-validated error lower by >= 2 %) are ranked by
+delta-BIC (which charges every column and every searched parameter) and the best is added.  Then the nonlinear parameters of ALL added effects are
+re-fitted jointly (coordinate sweeps; probe, pair and form re-chosen within each kind).  When no
+single addition passes or when a pair does clearly better than the best single (BIC), pairs of the
+strongest families are added together.  Stop when nothing passes or after ``MAX_EFFECTS``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+from typing import Any, Callable
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from bench.fit import effects as fx
+from bench.signal import block_means, hac_wald_test, lag1_autocorrelation, newey_west_lags
+
+FINE_S = 10.0
+BLOCK_S = 100.0
+P_MAX = 1e-3
+DBIC_MIN = 10.0
+MIN_CV_GAIN = 0.02
+MAX_EFFECTS = 4
+CV_FOLDS = 8
+PAIR_POOL = 6
+PAIR_DBIC = 6.0
+SCORED_SINGLES = 12
+JOINT_SWEEPS = 2
+SWAP_DBIC = 2.0
+
+
+@dataclass
+class Scored:
+    effects: tuple[fx.Effect, ...]
+    ssr: float
+    rank: int
+    n: int
+    rho: float
+    cv: float
+    resid: np.ndarray = field(repr=False)
+
+    @property
+    def n_eff(self) -> float:
+        rho = min(max(self.rho, 0.0), 0.95)
+        return max(10.0, self.n * (1 - rho) / (1 + rho))
+
+
+@dataclass
+class SearchProblem:
+    """The training run on the evidence grid: target, declared design, inputs on the fine grid."""
+
+    yb: np.ndarray                 # (n_blocks,) 100-s means of the target
+    Xb: np.ndarray                 # (n_blocks, k) 100-s means of the declared design
+    fine: fx.Inputs                # inputs on the fine grid (10-s means)
+    declared_signals_b: np.ndarray  # (n_blocks, s) 100-s means of the declared model's inputs
+    families: list[fx.Family]
+    n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
+    _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
+    _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self.rows = np.isfinite(self.yb) & np.all(np.isfinite(self.Xb), axis=1)
+        self.base_rank = _rank(self.Xb[self.rows])
+
+    # ---------------------------------------------------------------- columns
+    def columns(self, eff: fx.Effect) -> np.ndarray:
+        """The effect's columns built on the fine grid, as 100-s evidence-block means."""
+        key = eff.label
+        got = self._cache.get(key)
+        if got is None:
+            cols = eff.columns(self.fine)
+            got = np.column_stack(list(evidence_blocks(self.fine.time, cols).values()))
+            self._cache[key] = got
+        return got
+
+    def design(self, effects: tuple[fx.Effect, ...]) -> np.ndarray:
+        if not effects:
+            return self.Xb
+        return np.column_stack([self.Xb] + [self.columns(e) for e in effects])
+
+    # ---------------------------------------------------------------- fits
+    def ssr(self, effects: tuple[fx.Effect, ...]) -> float:
+        if effects:
+            got = self.projector(effects[:-1]).ssr_with(self.columns(effects[-1]))
+            if got is not None:
+                return got
+        X = self.design(effects)
+        ok = self.rows & np.all(np.isfinite(X), axis=1)
+        r = self.yb[ok] - X[ok] @ _lstsq(X[ok], self.yb[ok])
+        return float(r @ r)
+
+    def projector(self, effects: tuple[fx.Effect, ...]) -> "_Projector":
+        key = tuple(e.label for e in effects)
+        got = self._projectors.get(key)
+        if got is None:
+            if len(self._projectors) > 64:
+                self._projectors.clear()
+            got = self._projectors[key] = _Projector(self.design(effects), self.yb, self.rows)
+        return got
+
+    def score(self, effects: tuple[fx.Effect, ...], with_cv: bool = True) -> Scored:
+        X = self.design(effects)
+        ok = self.rows & np.all(np.isfinite(X), axis=1)
+        beta = _lstsq(X[ok], self.yb[ok])
+        resid = np.full(len(self.yb), np.nan)
+        resid[ok] = self.yb[ok] - X[ok] @ beta
+        r = resid[ok]
+        cv = self.cv(X) if with_cv else float("nan")
+        return Scored(effects, float(r @ r), _rank(X[ok]), int(ok.sum()), lag1_autocorrelation(resid), cv, resid)
+
+    def folds(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Contiguous segments of the training blocks; each is scored where the declared inputs lie
+        inside the range of the other segments."""
+        if self._folds is None:
+            idx = np.flatnonzero(self.rows)
+            edges = np.linspace(0, len(idx), CV_FOLDS + 1).astype(int)
+            out = []
+            S = self.declared_signals_b
+            for a, b in zip(edges[:-1], edges[1:]):
+                test = np.zeros(len(self.yb), dtype=bool)
+                test[idx[a:b]] = True
+                fit = self.rows & ~test
+                if S.shape[1]:
+                    lo = np.nanmin(S[fit], axis=0)
+                    hi = np.nanmax(S[fit], axis=0)
+                    with np.errstate(invalid="ignore"):
+                        test &= np.all((S >= lo) & (S <= hi), axis=1)
+                if test.sum() >= 2 and fit.sum() > 2 * self.Xb.shape[1]:
+                    out.append((fit, test))
+            self._folds = out
+        return self._folds
+
+    def cv(self, X: np.ndarray) -> float:
+        finite = np.all(np.isfinite(X), axis=1)
+        sse, cnt = 0.0, 0
+        for fit, test in self.folds():
+            f, t = fit & finite, test & finite
+            if t.sum() == 0 or f.sum() <= X.shape[1]:
+                continue
+            beta = _lstsq(X[f], self.yb[f])
+            e = self.yb[t] - X[t] @ beta
+            sse += float(e @ e)
+            cnt += int(t.sum())
+        return sse / cnt if cnt else float("nan")
+
+    def cv_gain(self, X0: np.ndarray, X1: np.ndarray) -> float:
+        """Relative drop of the cross-validated error from design X0 to X1 (X1 = X0 plus columns),
+        over the folds where the added columns vary in the other segments (an effect confined to one
+        segment, e.g. one warm-up, cannot be predicted from the others: those folds say nothing
+        about it).  NaN when no fold can judge it (then the validation run does)."""
+        k0 = X0.shape[1]
+        finite = np.all(np.isfinite(X1), axis=1)
+        added = X1[:, k0:] - np.nanmean(X1[finite][:, k0:], axis=0)
+        energy = np.where(finite[:, None], added ** 2, 0.0).sum(axis=1)
+        total = float(energy.sum())
+        folds = self.folds()
+        tested = np.zeros(len(energy), dtype=bool)
+        for _fit, test in folds:
+            tested |= test
+        confined = [total > 0 and float(energy[test].sum()) > 0.5 * total for _fit, test in folds]
+        if total > 0 and (any(confined) or float(energy[tested].sum()) < 0.5 * total):
+            # most of the effect lies in one segment, or where no segment can be scored in range:
+            # the other segments cannot predict it
+            return float("nan")
+        sse0 = sse1 = 0.0
+        for fit, test in folds:
+            f, t = fit & finite, test & finite
+            if t.sum() == 0 or f.sum() <= X1.shape[1]:
+                continue
+            for X, acc in ((X0, 0), (X1, 1)):
+                e = self.yb[t] - X[t] @ _lstsq(X[f], self.yb[f])
+                if acc == 0:
+                    sse0 += float(e @ e)
+                else:
+                    sse1 += float(e @ e)
+        return 1.0 - sse1 / sse0 if sse0 > 0 else float("nan")
+
+    # ---------------------------------------------------------------- parameter search
+    def best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
+        """The family's continuous parameter that minimises the training SSR with ``others`` fixed
+        (grid, then bounded golden section between the grid neighbours)."""
+        if not family.param:
+            eff = family.at(None)
+            return eff, self.ssr(others + (eff,))
+        grid = list(family.grid)
+        costs = [self.ssr(others + (family.at(v),)) for v in grid]
+        i = int(np.argmin(costs))
+        lo = np.log(grid[max(i - 1, 0)])
+        hi = np.log(grid[min(i + 1, len(grid) - 1)])
+        res = minimize_scalar(lambda lv: self.ssr(others + (family.at(float(np.exp(lv))),)),
+                              bounds=(lo, hi), method="bounded", options={"xatol": 0.03})
+        if np.isfinite(res.fun) and res.fun < costs[i]:
+            return family.at(float(np.exp(res.x))), float(res.fun)
+        return family.at(grid[i]), float(costs[i])
+
+    def refit_jointly(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+        """Joint re-fit of every added effect's nonlinear parameters, then swaps."""
+        return self.swap(self.refit_params(effects))
+
+    def refit_params(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+        """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
+        kind with the others held."""
+        current = tuple(effects)
+        n_eff = self.score(current, with_cv=False).n_eff
+        best = self.bic(current, n_eff)
+        for _ in range(JOINT_SWEEPS):
+            changed = False
+            for i, eff in enumerate(current):
+                others = current[:i] + current[i + 1:]
+                fams = [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
+                if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
+                    coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
+                                                            for v in (f.grid or (None,))))
+                    fams = coarse[:2]
+                for fam in fams:
+                    cand, _s = self.best_value(fam, others)
+                    trial = others[:i] + (cand,) + others[i:]
+                    b = self.bic(trial, n_eff)
+                    if b < best - 1e-9:             # BIC: another form or probe pays for its columns
+                        current, best, eff, changed = trial, b, cand, True
+            if not changed:
+                break
+        return current
+
+    def bic(self, effects: tuple[fx.Effect, ...], n_eff: float) -> float:
+        k = sum(self.columns(e).shape[1] for e in effects)
+        return (n_eff * np.log(max(self.ssr(effects), 1e-300)) + k * np.log(n_eff)
+                + sum(e.family.penalty(n_eff) for e in effects))
+
+    def swap(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+        """Replace an added effect by another family (any kind) when that lowers the BIC (effective n
+        of the current model) by more than SWAP_DBIC: an early choice made while another effect was
+        still missing is revisited once that effect is in."""
+        current = tuple(effects)
+        if not current:
+            return current
+        n_eff = self.score(current, with_cv=False).n_eff
+        for i in range(len(current)):
+            others = current[:i] + current[i + 1:]
+            best_bic = self.bic(current, n_eff)
+            fams = [f for f in self.families if not any(o.family == f for o in current)]
+            coarse = []
+            for f in fams:
+                vals = f.grid or (None,)
+                costs = [(self.ssr(others + (f.at(v),)), v) for v in vals]
+                coarse.append((min(costs, key=lambda c: c[0])[0], f))
+            coarse.sort(key=lambda c: c[0])
+            for _, fam in coarse[:3]:
+                cand, _s = self.best_value(fam, others)
+                trial = others[:i] + (cand,) + others[i:]
+                b = self.bic(trial, n_eff)
+                if b < best_bic - SWAP_DBIC:
+                    current, best_bic = trial, b
+        return current
+
+
+class _Projector:
+    """Frisch-Waugh-Lovell: the residual of y and of new columns after the current design, so the
+    sum of squares with a few added columns costs a projection, not a full least squares."""
+
+    def __init__(self, X: np.ndarray, y: np.ndarray, rows: np.ndarray) -> None:
+        self.ok = rows & np.all(np.isfinite(X), axis=1)
+        Xo = X[self.ok]
+        scale = np.sqrt(np.mean(Xo ** 2, axis=0))
+        scale[~(scale > 0)] = 1.0
+        u, sv, _ = np.linalg.svd(Xo / scale, full_matrices=False)
+        self.q = u[:, sv > sv[0] * 1e-10] if len(sv) else u[:, :0]
+        yo = y[self.ok]
+        self.yr = yo - self.q @ (self.q.T @ yo)
+
+    def ssr_with(self, Z: np.ndarray) -> float | None:
+        Zo = Z[self.ok]
+        if not np.all(np.isfinite(Zo)):
+            return None
+        Zr = Zo - self.q @ (self.q.T @ Zo)
+        norms = np.sqrt(np.sum(Zr ** 2, axis=0))
+        keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.sum(Zo ** 2))))
+        if not keep.any():
+            return float(self.yr @ self.yr)
+        b, *_ = np.linalg.lstsq(Zr[:, keep] / norms[keep], self.yr, rcond=1e-10)
+        r = self.yr - (Zr[:, keep] / norms[keep]) @ b
+        return float(r @ r)
+
+
+def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """100-s evidence blocks of fine-grid columns (``bench.signal.block_means``); the same fine time
+    axis always gives the same blocks, so target, design and effect columns line up."""
+    return block_means(fine_time, {k: np.asarray(v, dtype=np.float64) for k, v in cols.items()}, BLOCK_S).columns
+
+
+def hac_wald_p(X: np.ndarray, y: np.ndarray, columns: list[int]) -> float:
+    """p-value of ``bench.signal.hac_wald_test`` (1 when the robust covariance is singular), with
+    sqrt(n) Newey-West lags when that is more than the default: residuals with flicker (1/f) noise
+    keep their correlation far longer than the default lag count assumes."""
+    import warnings
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")       # rank-deficient candidates: judged by the p-value
+            n = int(np.sum(np.all(np.isfinite(X), axis=1) & np.isfinite(y)))
+            return hac_wald_test(X, y, columns, maxlags=max(newey_west_lags(n), int(np.ceil(np.sqrt(n))))).p_value
+    except (np.linalg.LinAlgError, ValueError):
+        return 1.0
+
+
+def _lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The search's small dense solve (hundreds of rows, called thousands of times: no per-call
+    thread-pool set-up); full-rate fits use ``bench.signal.lstsq``."""
+    scale = np.sqrt(np.mean(X ** 2, axis=0)) if len(X) else np.ones(X.shape[1])
+    scale[~(scale > 0)] = 1.0
+    beta, *_ = np.linalg.lstsq(X / scale, y, rcond=None)
+    return beta / scale
+
+
+def _rank(X: np.ndarray) -> int:
+    if len(X) == 0:
+        return 0
+    scale = np.sqrt(np.mean(X ** 2, axis=0))
+    return int(np.linalg.matrix_rank(X / np.where(scale > 0, scale, 1.0), tol=None))
+
+
+def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...]) -> dict[str, Any]:
+    """The three pieces of training evidence for adding ``added`` to ``base`` (giving ``new``)."""
+    rank_gain = new.rank - base.rank
+    # the residual's own autocorrelation counts structure that other effects still have to explain as
+    # if it were noise; the noise model's autocorrelation of 100-s means bounds n_eff from below
+    n_eff = max(new.n_eff, problem.n_eff_noise)
+    if rank_gain <= 0 or new.ssr <= 0 or new.ssr >= base.ssr:
+        dbic = -np.inf
+    else:
+        dbic = (n_eff * np.log(base.ssr / new.ssr) - rank_gain * np.log(n_eff)
+                - sum(e.family.penalty(n_eff) for e in added))
+    X = problem.design(new.effects)
+    k0 = problem.design(base.effects).shape[1]
+    p = hac_wald_p(X[problem.rows], problem.yb[problem.rows], list(range(k0, X.shape[1]))) if dbic > DBIC_MIN else 1.0
+    cv_gain = problem.cv_gain(problem.design(base.effects), X)
+    cv_ok = (not np.isfinite(cv_gain)) or cv_gain >= MIN_CV_GAIN
+    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok)
+    return {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
+            "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
+
+
+def search(problem: SearchProblem, stop_std100: float | None = None,
+           stop_at: Callable[[tuple[fx.Effect, ...]], float] | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
+    """Forward selection with pair look-ahead, joint re-fits and swaps.  Returns the chosen effects
+    and the evidence of each step (what was added, its gates, the runner-up).
+
+    Candidates are ranked by the BIC of the model they give, all with one effective n (that of the
+    whitest candidate model of the step), so that a candidate does not win by whitening its own
+    residual; each must pass the gates with its own effective n.  Pairs of the strongest families are
+    fitted jointly at every step; a pair is taken instead of the best single when its BIC is lower by
+    more than ``PAIR_DBIC`` (two effects at once that no single one explains well)."""
+    chosen: tuple[fx.Effect, ...] = ()
+    steps: list[dict[str, Any]] = []
+    while len(chosen) < MAX_EFFECTS:
+        base = problem.score(chosen)
+        left = float(np.nanstd(base.resid, ddof=1))
+        if chosen and stop_at is not None:
+            stop_std100 = stop_at(chosen)
+        if stop_std100 is not None and left <= stop_std100:
+            steps.append({"stopped": f"training residual std100 {left:.4g} is at the noise floor "
+                                     f"(<= {stop_std100:.4g})"})
+            break
+        used = {e.family for e in chosen}
+        singles = []
+        for fam in problem.families:
+            if fam in used:
+                continue
+            eff, s = problem.best_value(fam, chosen)
+            if s < base.ssr:
+                singles.append((s, eff))
+        singles.sort(key=lambda t: t[0])
+        ranked = []
+        for s, eff in singles[:SCORED_SINGLES]:
+            new = problem.score(chosen + (eff,))
+            ranked.append(((eff,), new, gates(problem, base, new, (eff,))))
+        pairs = []
+        if len(chosen) + 2 <= MAX_EFFECTS:
+            pool, kinds = [], set()
+            for _, eff in singles:              # the strongest family of each kind
+                if eff.kind not in kinds and len(pool) < PAIR_POOL:
+                    pool.append(eff)
+                    kinds.add(eff.kind)
+            for a, b in combinations(pool, 2):
+                if a.family == b.family:
+                    continue
+                pair = problem.refit_params(chosen + (a, b))[len(chosen):]
+                new = problem.score(chosen + pair)
+                ev = gates(problem, base, new, pair)
+                if ev["passed"]:
+                    each = [hac_wald_p(*_xy(problem, chosen + pair), _cols_of(problem, chosen + pair, j))
+                            for j in range(len(chosen), len(chosen) + 2)]
+                    ev["each_hac_wald_p"] = each
+                    ev["passed"] = max(each) < P_MAX
+                pairs.append((pair, new, ev))
+        everything = ranked + pairs
+        if not everything:
+            break
+        n_ref = max(r[1].n_eff for r in everything)
+        bic = {id(r): problem.bic(chosen + r[0], n_ref) for r in everything}
+        passing = sorted((r for r in ranked if r[2]["passed"]), key=lambda r: bic[id(r)])
+        passing_pairs = sorted((r for r in pairs if r[2]["passed"]), key=lambda r: bic[id(r)])
+        pick = passing[0] if passing else None
+        if passing_pairs and (pick is None or (bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC
+                                               and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
+                                               and not _at_floor(pick, chosen, stop_at))):
+            pick = passing_pairs[0]
+        if pick is None:
+            break
+        move, new, ev = pick
+        ev["pair"] = len(move) == 2
+        runner = next((r for r in passing if r is not pick and r[0][0].family != move[0].family), None)
+        ev["runner_up"] = _describe(runner[0][0], runner[2]) if runner else None
+        ev["bic_margin_to_runner_up"] = float(bic[id(runner)] - bic[id(pick)]) if runner else None
+        chosen = problem.refit_jointly(chosen + move)
+        steps.append({"added": [e.label for e in move], "evidence": ev, "train_std100_before_step": left,
+                      "after_joint_refit": [e.label for e in chosen]})
+    return prune(problem, chosen, steps), steps
+
+
+def _at_floor(single, chosen, stop_at) -> bool:
+    """The best single addition already brings the training residual to its noise floor: a pair
+    would only fit noise."""
+    if stop_at is None:
+        return False
+    left = float(np.nanstd(single[1].resid, ddof=1))
+    return left <= stop_at(chosen + single[0])
+
+
+def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
+          steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
+    """Backward pass on TRAIN: an effect that no longer passes the gates given all the others (an
+    early choice made redundant by later ones) is removed, the weakest first."""
+    current = tuple(effects)
+    while len(current) > 1:
+        weakest = None
+        for i, e in enumerate(current):
+            others = current[:i] + current[i + 1:]
+            ev = gates(problem, problem.score(others), problem.score(others + (e,)), (e,))
+            if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
+                weakest = (i, ev["delta_bic"])
+        if weakest is None:
+            break
+        steps.append({"pruned": current[weakest[0]].label, "delta_bic_given_the_others": weakest[1]})
+        current = current[:weakest[0]] + current[weakest[0] + 1:]
+    return current
+
+
+def _describe(eff: fx.Effect, ev: dict[str, Any]) -> dict[str, Any]:
+    return {"kind": eff.kind, "params": eff.params, "delta_bic": ev["delta_bic"], "cv_gain": ev["cv_gain"]}
+
+
+def _xy(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[np.ndarray, np.ndarray]:
+    X = problem.design(effects)
+    return X[problem.rows], problem.yb[problem.rows]
+
+
+def _cols_of(problem: SearchProblem, effects: tuple[fx.Effect, ...], j: int) -> list[int]:
+    start = problem.Xb.shape[1] + sum(problem.columns(e).shape[1] for e in effects[:j])
+    return list(range(start, start + problem.columns(effects[j]).shape[1]))
