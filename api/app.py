@@ -41,7 +41,6 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
     app.state.tokens = token_map
     app.state.stale_after_s = stale_after_s
     app.state.sse_poll_s = sse_poll_s
-    app.state.jobs = []
     from bench.metrics import api_registry
     app.state.metrics_registry = api_registry(db)
     problems.install(app)

@@ -74,6 +74,8 @@ def run_detail(session: Session, db: Database, run: Run, bench_name: str | None,
                      "finished_t": s.finished_t} for s in steps]
     doc["gaps"] = [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason, "frames_missing": g.frames_missing}
                    for g in session.scalars(select(Gap).where(Gap.run_id == run.id).order_by(Gap.t_from))]
+    doc["frames_lost"] = int(sum(g["frames_missing"] or 0 for g in doc["gaps"]))
+    doc["bench_seconds_lost"] = float(sum(g["t_to"] - g["t_from"] for g in doc["gaps"]))
     doc["suspensions"] = [{"t_from": s.t_from, "t_to": s.t_to, "reason": s.reason}
                           for s in session.scalars(select(Suspension).where(Suspension.run_id == run.id)
                                                    .order_by(Suspension.t_from))]

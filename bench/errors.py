@@ -62,3 +62,10 @@ class DataFormatError(BenchError):
         self.line = line
         self.column = column
         self.source = source
+
+
+class LeaseLost(BaseException):
+    """This worker no longer owns the run (another worker took it over after this one stopped
+    heartbeating).  A ``BaseException`` on purpose, like ``KeyboardInterrupt``: no ``except Exception``
+    on the way out (the engine's failure path, the safe-state sequence, a monitor's retry) may catch it
+    and touch the run or the hardware again; it ends the run loop and reaches the worker."""

@@ -1,5 +1,6 @@
 """The bench worker: takes the runs queued for its bench from the database and executes them with the
-run engine, one at a time, heartbeating while it does.
+run engine, one at a time, heartbeating while it does.  Between runs it executes the analysis jobs
+queued by the API (``bench.jobs``), unless built with ``run_jobs=False``.
 
 Claiming (one run per bench at a time)
 --------------------------------------
@@ -43,8 +44,10 @@ from bench.clock import Clock
 from bench.config import BenchConfig
 from bench.engine import Devices, Engine, EngineConfig
 from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
+from bench.engine.lease import RunLease, fence_devices
 from bench.engine.sqlstore import SqlRunStore
-from bench.errors import BenchError
+from bench.errors import BenchError, LeaseLost
+from bench.jobs import JobRunner
 from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
@@ -55,6 +58,7 @@ log = logging.getLogger(__name__)
 
 ACTIVE = tuple(sorted(queries.ACTIVE))
 TERMINAL = tuple(sorted(queries.TERMINAL))
+LOST = "lost"          # execute()'s answer when another worker took the run over
 DevicesFactory = Callable[[BenchConfig], Devices]
 
 
@@ -69,8 +73,9 @@ class DbControl:
     row's ``live`` document is only ever rewritten by the engine's own thread (no lost updates)."""
 
     def __init__(self, db: Database, run_id: int, min_interval_s: float = 0.2,
-                 publish: Callable[[], None] | None = None, publish_s: float = 1.0) -> None:
+                 publish: Callable[[], None] | None = None, publish_s: float = 1.0, lease: RunLease | None = None) -> None:
         self.db = db
+        self.lease = lease          # a worker that lost the run consumes none of its requests
         self.run_id = int(run_id)
         self.min_interval_s = min_interval_s
         self._next = 0.0
@@ -79,6 +84,8 @@ class DbControl:
         self._next_publish = 0.0
 
     def poll(self) -> str | None:
+        if self.lease is not None:
+            self.lease.check()
         now = time.monotonic()
         if self.publish is not None and now >= self._next_publish:
             # progress is published from the engine's thread, between its own writes of the run row
@@ -127,7 +134,7 @@ class Worker:
                  clock: Clock, *, engine_config: EngineConfig | None = None, worker_id: str | None = None,
                  heartbeat_s: float = 1.0, stale_after_s: float = 15.0, poll_s: float = 0.5,
                  accept_fits: bool = True, writer_options: dict[str, Any] | None = None,
-                 bench_state: Any = None) -> None:
+                 run_jobs: bool = True, bench_state: Any = None) -> None:
         if stale_after_s <= 2 * heartbeat_s:
             raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
         self.db = db
@@ -144,7 +151,12 @@ class Worker:
         self.accept_fits = accept_fits
         self.writer_options = writer_options
         self._stop = threading.Event()
+        # between runs the worker executes analysis jobs (fits, close-the-loop, reports) under their own
+        # leases; run_jobs=False leaves them to `bench worker --analysis`
+        self.jobs = JobRunner(db, worker_id=f"{self.worker_id}/jobs", heartbeat_s=heartbeat_s,
+                              stale_after_s=stale_after_s) if run_jobs else None
         self.current_run: int | None = None
+        self.lease: RunLease | None = None
         self.engine: Engine | None = None
         self.runs_done: list[tuple[int, str]] = []
         with db.session() as s:
@@ -164,6 +176,11 @@ class Worker:
                 except StorageError as exc:
                     log.warning("worker %s: database problem: %s", self.worker_id, exc)
                     did = None
+                if did is None and self.jobs is not None and not self._stop.is_set():
+                    try:
+                        did = self.jobs.run_one()
+                    except StorageError as exc:
+                        log.warning("worker %s: database problem with the job queue: %s", self.worker_id, exc)
                 if did is None:
                     self._stop.wait(self.poll_s)
         finally:
@@ -236,6 +253,8 @@ class Worker:
         store = SqlRunStore(self.db, geometry=self.config.turntable.geometry, frame_kind=self.config.gyro.frame,
                             nominal_rate_hz=self.config.gyro.data_rate_hz, writer_options=self.writer_options)
         self.current_run = run_id
+        lease = self.lease = RunLease(self.db, run_id, self.worker_id, self.stale_after_s)
+        store.lease = lease
         stop_beat = threading.Event()
         beat = threading.Thread(target=self._heartbeat_loop, args=(run_id, stop_beat), daemon=True,
                                 name=f"heartbeat-run{run_id}")
@@ -244,8 +263,9 @@ class Worker:
         try:
             devices = self.devices_factory(self.config)
             control = DbControl(self.db, run_id, publish=lambda: self._publish_progress(run_id),
-                                publish_s=self.heartbeat_s)
-            engine = Engine(devices, store, self.clock, self.config, control, self.engine_config,
+                                publish_s=self.heartbeat_s, lease=lease)
+            engine = Engine(fence_devices(devices, lease), store, self.clock, self.config, control,
+                            self.engine_config,
                             make_fit_hook(self.db, store, latitude_deg=self.config.latitude_deg, accept=self.accept_fits),
                             bench_state=self.bench_state)
             self.engine = engine
@@ -256,6 +276,9 @@ class Worker:
                 module = procedures.get(procedure)
                 plan = module.build(module.Params.model_validate(params))
                 status = engine.run(str(run_id), plan)
+        except LeaseLost as exc:      # another worker owns the run now: touch neither it nor the hardware
+            status = LOST
+            log.warning("run %s: %s; leaving the run loop", run_id, exc)
         except BenchError as exc:     # before the engine took over (devices, plan): the run fails here
             status = RunStatus.FAILED.value
             self._fail(run_id, f"{type(exc).__name__}: {exc}")
@@ -275,12 +298,16 @@ class Worker:
                     log.warning("run %s: closing devices: %s", run_id, problem)
             self.engine = None
             self.current_run = None
+            self.lease = None
         self.runs_done.append((run_id, status))
         return status
 
     def _fail(self, run_id: int, reason: str) -> None:
         with self.db.session() as s:
             run = queries.get_run(s, run_id, for_update=True)
+            if run.worker != self.worker_id:
+                log.warning("run %s: not marked failed (%s): worker %s owns it now", run_id, reason, run.worker)
+                return
             if run.status not in TERMINAL:
                 run.status, run.finished_at, run.error = RunStatus.FAILED.value, utcnow(), reason
                 queries.add_event(s, run_id, "run_failed", reason)
@@ -298,8 +325,16 @@ class Worker:
     def _heartbeat(self, run_id: int) -> None:
         """Liveness only: single-column updates of the run and the bench lease (never ``live``)."""
         now = utcnow()
+        lease = self.lease
         with self.db.session() as s:
-            s.execute(_update(Run).where(Run.id == run_id, Run.worker == self.worker_id).values(heartbeat_at=now))
+            took = s.execute(_update(Run).where(Run.id == run_id, Run.worker == self.worker_id)
+                             .values(heartbeat_at=now)).rowcount
+            if lease is not None and lease.run_id == run_id:
+                if took == 1:
+                    lease.confirm()
+                else:
+                    lease.lose(s.scalar(select(Run.worker).where(Run.id == run_id)))
+                    return
             s.execute(_update(Bench).where(Bench.name == self.bench_name, Bench.worker == self.worker_id)
                       .values(heartbeat_at=now, state={"state": "busy", "run_id": run_id, "worker": self.worker_id}))
 
@@ -320,7 +355,7 @@ class Worker:
         wall_left = remaining / finite_speed if finite_speed else 0.0
         with self.db.session() as s:
             run = queries.get_run(s, run_id, for_update=True)
-            if run.status in TERMINAL:
+            if run.status in TERMINAL or run.worker != self.worker_id:
                 return
             run.live = {**(run.live or {}), "progress": jsonable(progress),
                         "eta_utc": (now + dt.timedelta(seconds=wall_left)).isoformat(),

@@ -7,9 +7,11 @@ import datetime as dt
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 
 from api.app import create_app
 from api.auth import parse_tokens
+from bench.jobs import JobRunner
 from bench.storage import open_database, queries
 from tests.api_support import ADMIN, OPERATOR, SHORT_RAMP, TOKENS, VIEWER, register_bench
 
@@ -202,8 +204,14 @@ def test_import_fit_accept_coefficients(env):
     is_problem(c.post("/fits", json=body, headers=VIEWER), 403)
     is_problem(c.post("/fits", json={**body, "accept": True}, headers=OPERATOR), 403)   # accepting: admin
     r = c.post("/fits", json=body, headers=OPERATOR)
-    assert r.status_code == 201, r.text
-    fit = r.json()
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["status"] == "queued" and r.headers["location"] == job["url"] == f"/jobs/{job['id']}"
+    assert c.get(job["url"], headers=VIEWER).json()["status"] == "queued"     # the API process fits nothing
+    assert JobRunner(db).run_pending() == [(job["id"], "done")]
+    job = c.get(job["url"], headers=VIEWER).json()
+    assert job["status"] == "done" and job["attempts"] == 1 and job["report_url"] == f"/fits/{job['fit_id']}/report"
+    fit = c.get(f"/fits/{job['result']['fit_id']}", headers=VIEWER).json()
     assert fit["gyro_id"] == "G-100" and fit["version"] == 1 and not fit["accepted"]
     assert fit["channels"]["x"]["coefficients"]["A1"] == pytest.approx(0.4, abs=0.01)
     assert fit["channels"]["y"]["coefficients"]["A1"] == pytest.approx(-0.2, abs=0.01)
@@ -221,7 +229,9 @@ def test_import_fit_accept_coefficients(env):
     assert coeffs["models"][0]["channels"]["z"]["coefficients"]["A1"] == pytest.approx(0.1, abs=0.01)
     # a second accepted version replaces the first
     r2 = c.post("/fits", json={**body, "run_ids": [train, val], "validation_run_ids": [], "accept": True}, headers=ADMIN)
-    assert r2.status_code == 201 and r2.json()["version"] == 2
+    assert r2.status_code == 202
+    JobRunner(db).run_pending()
+    assert c.get(r2.json()["url"], headers=VIEWER).json()["result"]["version"] == 2
     assert c.get("/gyros/G-100/coefficients?model=static", headers=VIEWER).json()["models"][0]["version"] == 2
     listing = c.get("/gyros/G-100/fits", headers=VIEWER).json()["fits"]
     assert [(f["version"], f["accepted"]) for f in listing] == [(2, True), (1, False)]
@@ -233,6 +243,11 @@ def test_import_fit_accept_coefficients(env):
     is_problem(c.get("/fits/99999", headers=VIEWER), 404)
     is_problem(c.post("/fits", json={**body, "run_ids": [99999]}, headers=OPERATOR), 404)
     is_problem(c.post("/fits", json={**body, "model": "t1 +"}, headers=OPERATOR), 422)
+    # what only the data can tell ends the job failed, with the reason
+    bad = c.post("/fits", json={**body, "model": "t1 + t9"}, headers=OPERATOR).json()
+    JobRunner(db).run_pending()
+    bad = c.get(bad["url"], headers=VIEWER).json()
+    assert bad["status"] == "failed" and "t9" in bad["error"], bad
     # data of the imported run
     data = c.get(f"/runs/{train}/data?stream=seconds&every=100", headers=VIEWER).json()
     assert data["rows"] == 18 and data["columns"]["gyro_x"][0] == pytest.approx(3 + 0.4 * (10 - 25), abs=0.3)
@@ -253,16 +268,39 @@ def test_close_loop_job(env):
     r = c.post("/close-loop", json=body, headers=OPERATOR)
     assert r.status_code == 202
     aid = r.json()["id"]
-    import time
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        doc = c.get(f"/close-loop/{aid}", headers=VIEWER).json()
-        if doc["status"] in ("done", "failed"):
-            break
-        time.sleep(0.2)
+    assert r.headers["location"] == f"/close-loop/{aid}"
+    assert c.get(f"/close-loop/{aid}", headers=VIEWER).json()["status"] == "queued"
+    is_problem(c.get(f"/close-loop/{aid}/report", headers=VIEWER), 409)
+    assert JobRunner(db).run_pending() == [(aid, "done")]
+    doc = c.get(f"/close-loop/{aid}", headers=VIEWER).json()
     assert doc["status"] == "done", doc["error"]
     assert set(doc["result"]["channels"]) == {"x", "y", "z"}
+    assert doc["report_url"] == f"/close-loop/{aid}/report"
+    page = c.get(doc["report_url"], headers=VIEWER)         # stored once by the job, served as it is
+    assert page.status_code == 200 and page.text.lstrip().lower().startswith("<!doctype html")
     for part in ("before", "after"):
         assert set(doc["result"]["channels"]["x"][part]) >= {
             "validation_std100_dph", "validation_rms_dph", "validation_coverage", "validation_all_std100_dph"}
     is_problem(c.get("/close-loop/9999", headers=VIEWER), 404)
+
+
+def test_fit_stored_without_a_job_gets_its_report_rendered_by_a_job(env):
+    """A fit stored by a run's Fit step has no report yet: the first request queues one rendering job
+    (202 with its URL, the same job on a second request); once a worker rendered it, the page is served."""
+    db, c = env
+    from bench.commands.service import import_dataset
+    from bench.fit.models import fit_model
+    from bench.storage.models import Fit
+
+    ds = synthetic_dataset(seed=5)
+    train = import_dataset(db, ds, "G-300")
+    with db.session() as s:
+        queries.save_fits(s, "G-300", [train], [fit_model("static", ds, ch) for ch in "xyz"])
+        fit_id = min(s.scalars(select(Fit.id).where(Fit.gyro_id == "G-300")))
+    first = c.get(f"/fits/{fit_id}/report", headers=VIEWER)
+    assert first.status_code == 202 and first.json()["kind"] == "fit_report"
+    again = c.get(f"/fits/{fit_id + 1}/report", headers=VIEWER)        # another channel of the same version
+    assert again.status_code == 202 and again.json()["id"] == first.json()["id"]
+    assert JobRunner(db).run_pending() == [(first.json()["id"], "done")]
+    page = c.get(f"/fits/{fit_id + 2}/report", headers=VIEWER)
+    assert page.status_code == 200 and "G-300: static v1" in page.text

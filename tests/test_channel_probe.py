@@ -296,6 +296,7 @@ def test_api_fit_with_tc_formula_shows_the_probe_per_channel(tmp_path):
 
     from api.app import create_app
     from bench.commands.service import import_dataset
+    from bench.jobs import JobRunner
     from bench.storage import open_database
     from tests.api_support import ADMIN, OPERATOR, TOKENS, VIEWER
 
@@ -306,8 +307,10 @@ def test_api_fit_with_tc_formula_shows_the_probe_per_channel(tmp_path):
         val = import_dataset(db, own_probe_run(PROFILE_V, seed=10), "G-OWN")
         r = client.post("/fits", json={"model": "tc + tc^2 + tc^3 + dtc", "run_ids": [train],
                                        "validation_run_ids": [val]}, headers=OPERATOR)
-        assert r.status_code == 201, r.text
-        fit = r.json()
+        assert r.status_code == 202, r.text
+        assert JobRunner(db).run_pending() == [(r.json()["id"], "done")]
+        fit_id = client.get(r.json()["url"], headers=VIEWER).json()["result"]["fit_id"]
+        fit = client.get(f"/fits/{fit_id}", headers=VIEWER).json()
         assert {ch: e["probe"] for ch, e in fit["channels"].items()} == OWN
         assert fit["channels"]["y"]["definition"]["terms"][1]["expr"] == "t2"
         assert fit["channels"]["y"]["metrics"]["validation"]["std100_dph"] < 2 * NOISE_STD100
@@ -317,7 +320,10 @@ def test_api_fit_with_tc_formula_shows_the_probe_per_channel(tmp_path):
         # runs whose maps disagree are refused rather than fitted with the wrong probe
         other = import_dataset(db, own_probe_run(PROFILE[:3], seed=11, mapping={"x": "t1", "y": "t4"}), "G-OWN")
         r = client.post("/fits", json={"model": "static", "run_ids": [train, other]}, headers=OPERATOR)
-        assert r.status_code == 422 and "channel y: probe t4 in run" in r.json()["detail"]
+        assert r.status_code == 202
+        JobRunner(db).run_pending()
+        job = client.get(r.json()["url"], headers=VIEWER).json()
+        assert job["status"] == "failed" and "channel y: probe t4 in run" in job["error"]
     finally:
         client.close()
         db.dispose()

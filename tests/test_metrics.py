@@ -109,7 +109,7 @@ def test_buffered_frames_gaps_and_suspensions_are_counted(db):
     m = now()
     assert value(m, "bench_frames_buffered", run=str(rid)) == 0
     assert value(m, "bench_frames_stored_total", bench="bm") == 1500
-    assert value(m, "bench_gaps_total", bench="bm", reason="link_drop") == 1
+    assert value(m, "bench_gaps_total", bench="bm", reason="link") == 1
     assert value(m, "bench_frames_lost_total", bench="bm") == 500
     with db.session() as s:
         s.add(Suspension(run_id=rid, t_from=20.0, t_to=30.0, reason="probe fault"))

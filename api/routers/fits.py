@@ -1,36 +1,34 @@
 """Fits and coefficients: fit a model on stored runs, read a gyro's coefficients, accept a version,
-and close the loop (long: runs in the background, polled by id).
+and close the loop.  Fits, close-the-loop analyses and report pages are jobs (``bench.jobs``) executed
+by workers: this process only enqueues them (202 with the job's URL) and reads their stored results.
 
 A *fit* is one version of one model for one gyro; it has a row per channel.  ``/fits/{id}`` takes
 the id of any of those rows and answers with the whole version.
 """
 from __future__ import annotations
 
-import dataclasses
 import datetime as dt
-import threading
+
 from typing import Any, Literal
 
-import numpy as np
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import HTMLResponse, JSONResponse, Response
-from sqlalchemy import and_, func, select
+from sqlalchemy import and_, select
 
 from api.auth import Principal, require
 from api.coefficients import NoCoefficients, load_coefficients
 from api.deps import get_db
 from api.problems import Problem, problem_codes
-from api.schemas import ID_PATTERN, GyroPath, RowId, CloseLoopCreate, FitCreate
+from api.schemas import ID_PATTERN, CloseLoopCreate, FitCreate, GyroPath, RowId
 from api.views import iso
+from bench.analysis import fit_results
 from bench.errors import BenchError
-from bench.fit.base import Dataset, FitResult, channel_probe_map
+from bench.jobs import enqueue
 from bench.storage import queries
 from bench.storage.db import Database
-from bench.storage.models import Analysis, Fit, Gyro, Run, utcnow
+from bench.storage.models import Analysis, Fit, Gyro, Run
 
 router = APIRouter(tags=["fits"])
-RUN_GAP_S = 86_400.0       # time offset between concatenated runs (rate filters see a gap, not a jump)
-_FIT_FIELDS = [f.name for f in dataclasses.fields(FitResult)]
 
 
 # ------------------------------------------------------------------------------------ helpers
@@ -58,63 +56,6 @@ def _group_rows(session, fit_id: int) -> list[Fit]:
         raise Problem(404, "Fit not found", f"fit {fit_id} does not exist")
     return list(session.scalars(select(Fit).where(Fit.gyro_id == one.gyro_id, Fit.model == one.model,
                                                   Fit.version == one.version).order_by(Fit.channel)))
-
-
-def _results(rows: list[Fit]) -> list[FitResult]:
-    out = []
-    for r in rows:
-        res = r.result or {}
-        out.append(FitResult(**{k: res[k] for k in _FIT_FIELDS if k in res}))
-    return out
-
-
-def load_runs_dataset(db: Database, run_ids: list[int], latitude_deg: float | None) -> tuple[Dataset, str | None]:
-    """The recorded data of ``run_ids`` as one Dataset (runs one after the other, RUN_GAP_S apart) and their
-    common gyro id.  Refuses unknown runs, runs of different gyros and runs with too little data."""
-    from bench.storage.export import run_dataset
-
-    gyro_ids, parts = set(), []
-    with db.session() as s:
-        for rid in run_ids:
-            run = s.get(Run, rid)
-            if run is None:
-                raise Problem(404, "Unknown run", f"run {rid} does not exist")
-            gyro_ids.add(run.gyro_id)
-            parts.append((rid, latitude_deg))
-    if len(gyro_ids) > 1:
-        raise Problem(409, "Runs of different gyros", f"runs {run_ids} belong to gyros {sorted(map(str, gyro_ids))}")
-    datasets = []
-    for rid, lat in parts:
-        ds = run_dataset(rid, db, latitude_deg=lat)
-        if "temp_point_c" in ds.columns:       # segment label (set point), not a probe: never a fit input
-            ds = Dataset({k: v for k, v in ds.columns.items() if k != "temp_point_c"}, ds.meta)
-        if len(ds) < 10:
-            raise Problem(409, "Not enough data", f"run {rid} has {len(ds)} recorded seconds stored; at least 10 "
-                          f"are needed to fit")
-        datasets.append(ds)
-    if len(datasets) == 1:
-        return datasets[0], gyro_ids.pop()
-    common = [k for k in datasets[0].columns if all(k in d.columns for d in datasets[1:])]
-    offset, merged = 0.0, {k: [] for k in common}
-    for d in datasets:
-        for k in common:
-            merged[k].append(d.columns[k] + offset if k == "time_s" else d.columns[k])
-        offset += float(d.columns["time_s"][-1]) + RUN_GAP_S
-    meta = dict(datasets[0].meta)
-    meta["run_id"] = ",".join(str(r) for r in run_ids)
-    maps = {rid: channel_probe_map(d) for rid, d in zip(run_ids, datasets)}
-    merged_map: dict[str, str] = {}
-    for rid, mapping in maps.items():
-        for ch, probe in mapping.items():
-            if merged_map.setdefault(ch, probe) != probe:
-                raise Problem(422, "Runs disagree on channel probes",
-                              f"channel {ch}: probe {probe} in run {rid}, {merged_map[ch]} in an earlier run of "
-                              f"{run_ids}")
-    if merged_map:
-        meta["channel_probes"] = merged_map
-    if any("latitude_deg" not in d.meta for d in datasets):
-        meta.pop("latitude_deg", None)
-    return Dataset({k: np.concatenate(v) for k, v in merged.items()}, meta), gyro_ids.pop()
 
 
 # ------------------------------------------------------------------------------ coefficients
@@ -237,7 +178,7 @@ def list_fits(db: Database = Depends(get_db), _: Principal = Depends(require("vi
 def _analysis_summary(a: Analysis) -> dict[str, Any]:
     """An analysis without its full result: per channel the verdict, the effects added and the
     validation std of 100-s means before and after."""
-    doc = {k: v for k, v in _analysis_doc(a).items() if k != "result"}
+    doc = {k: v for k, v in _job_doc(a).items() if k != "result"}
     doc["model"] = (a.request or {}).get("model")
     channels = {}
     for ch, r in ((a.result or {}).get("channels") or {}).items():
@@ -271,53 +212,80 @@ def list_close_loop(db: Database = Depends(get_db), _: Principal = Depends(requi
 
 
 # -------------------------------------------------------------------------------------- fits
-@router.post("/fits", status_code=201, summary="Fit a model on stored runs",
+@router.post("/fits", status_code=202, summary="Fit a model on stored runs (a job: 202 with the job's URL)",
              openapi_extra=problem_codes(404, 409))
 def create_fit(body: FitCreate, db: Database = Depends(get_db), who: Principal = Depends(require("operator"))):
-    """Fit ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
-    ``validation_run_ids`` too) and store it as the next version of the model for the gyro."""
-    from bench.fit.channels import fit_channels
-
+    """Queue a job that fits ``model`` per channel on the recorded data of ``run_ids`` (evaluated on
+    ``validation_run_ids`` too), stores it as the next version of the model for the gyro and renders its
+    report.  Poll ``GET /jobs/{id}``: once ``done`` its ``result`` names the fit (``fit_id``)."""
     if body.accept and not who.allows("admin"):
         raise Problem(403, "Not allowed", "accepting a fit as the gyro's coefficients needs the admin role")
     overlap = set(body.run_ids) & set(body.validation_run_ids)
     if overlap:
         raise Problem(422, "Invalid input", f"runs {sorted(overlap)} are both training and validation runs")
-    train, gyro_id = load_runs_dataset(db, body.run_ids, body.latitude_deg)
-    validate = None
-    if body.validation_run_ids:
-        validate, vgyro = load_runs_dataset(db, body.validation_run_ids, body.latitude_deg)
-        if vgyro != gyro_id:
-            raise Problem(409, "Runs of different gyros", f"validation runs belong to gyro {vgyro}, training "
-                          f"runs to {gyro_id}")
-    gyro_id = body.gyro_id or gyro_id
-    if gyro_id is None:
-        raise Problem(422, "Invalid input", "the runs have no gyro id; give gyro_id")
-    channels = list(body.channels) if body.channels else train.gyro_channels()
-    missing = [c for c in channels if f"gyro_{c}" not in train]
-    if missing:
-        raise Problem(409, "Channel not recorded",
-                      f"channels {missing} are not in the data (have {train.gyro_channels()})")
-    opts = {"latitude_deg": body.latitude_deg} if body.latitude_deg is not None else {}
-    try:
-        doc, results = fit_channels(body.model, train, validate, channels, opts)
-    except (BenchError, ValueError, KeyError, np.linalg.LinAlgError) as exc:
-        raise Problem(409, "Fit failed", f"{body.model} on runs {body.run_ids}: {str(exc).strip(chr(39))}") from None
-    stored = []
-    for r in results:
-        item = r.to_json()
-        item["metrics"] = {k: v for k, v in doc["channels"].get(r.channel, {}).items()
-                           if k in ("train", "validation")}
-        item["validation_run_ids"] = body.validation_run_ids
-        stored.append(item)
+    _check_model(body.model)
     with db.session() as s:
-        versions = queries.save_fits(s, gyro_id, body.run_ids, stored, accepted=body.accept)
-        model_name = results[0].model
-        rows = list(s.scalars(select(Fit).where(Fit.gyro_id == gyro_id, Fit.model == model_name,
-                                                Fit.version == versions[model_name])))
-        out = _group_doc(rows)
-    out["requested_by"] = who.name
-    return out
+        gyros = _gyros_of(s, [*body.run_ids, *body.validation_run_ids])
+        if len(gyros) > 1:
+            raise Problem(409, "Runs of different gyros", f"runs {body.run_ids + body.validation_run_ids} belong "
+                          f"to gyros {sorted(map(str, gyros))}")
+        job = enqueue(s, "fit", body.model_dump(mode="json"), requested_by=who.name,
+                      gyro_id=body.gyro_id or next(iter(gyros), None))
+        doc = _job_doc(job)
+    return _accepted(doc)
+
+
+def _check_model(model: str) -> None:
+    """Refuse at once a model that is neither a named model nor a formula that parses."""
+    from bench.fit.catalog import NAMED_MODELS
+    from bench.fit.formula import parse_formula
+
+    if model in NAMED_MODELS:
+        return
+    try:
+        parse_formula(model)
+    except BenchError as exc:
+        raise Problem(422, "Invalid input", f"model {model!r} is not one of {list(NAMED_MODELS)} and not a "
+                      f"formula: {exc}") from None
+
+
+def _gyros_of(session, run_ids: list[int]) -> set[str | None]:
+    gyros = set()
+    for rid in run_ids:
+        run = session.get(Run, rid)
+        if run is None:
+            raise Problem(404, "Unknown run", f"run {rid} does not exist")
+        gyros.add(run.gyro_id)
+    return gyros
+
+
+def _job_url(job: Analysis | dict[str, Any]) -> str:
+    kind, job_id = (job.kind, job.id) if isinstance(job, Analysis) else (job["kind"], job["id"])
+    return f"/close-loop/{job_id}" if kind == "close_loop" else f"/jobs/{job_id}"
+
+
+def _job_doc(a: Analysis) -> dict[str, Any]:
+    doc = {"id": a.id, "kind": a.kind, "status": a.status, "url": _job_url(a), "gyro_id": a.gyro_id,
+           "request": a.request, "requested_by": a.requested_by, "created_at": iso(a.created_at),
+           "started_at": iso(a.started_at), "finished_at": iso(a.finished_at), "attempts": a.attempts,
+           "worker": a.worker, "error": a.error, "result": a.result, "fit_id": a.fit_id}
+    if a.status == "done" and a.report_html is not None:
+        doc["report_url"] = (f"/close-loop/{a.id}/report" if a.kind == "close_loop"
+                             else f"/fits/{a.fit_id}/report")
+    return doc
+
+
+def _accepted(doc: dict[str, Any]) -> JSONResponse:
+    return JSONResponse(doc, status_code=202, headers={"Location": doc["url"]})
+
+
+@router.get("/jobs/{job_id}", summary="An analysis job (fit, close-the-loop, report): status and result")
+def get_job(job_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
+    with db.session() as s:
+        a = s.get(Analysis, job_id)
+        if a is None:
+            raise Problem(404, "Not found", f"job {job_id} does not exist")
+        return _job_doc(a)
 
 
 @router.get("/fits/{fit_id}", summary="One fit version (all its channels)")
@@ -347,94 +315,50 @@ def export_fit(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Dep
         gyro = s.get(Gyro, rows[0].gyro_id)
         gyro_type = gyro.type if gyro is not None and gyro.type else None
     try:
-        return build_export(rows[0].gyro_id, _results(rows), gyro_type=gyro_type,
+        return build_export(rows[0].gyro_id, fit_results(rows), gyro_type=gyro_type,
                             source={"fit_id": fit_id, "run_ids": rows[0].run_ids, "version": rows[0].version})
     except BenchError as exc:
         raise Problem(409, "Cannot export", str(exc)) from None
 
 
 @router.get("/fits/{fit_id}/report", summary="HTML report of this version on its training / validation runs",
-            response_class=HTMLResponse, openapi_extra=problem_codes(409))
+            response_class=HTMLResponse, openapi_extra=problem_codes(409),
+            responses={202: {"description": "not rendered yet: the rendering job (its URL) is queued or running"}})
 def fit_report(fit_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
-    from bench.fit.catalog import predict
-    from bench.fit.report import render_fit_report
-
+    """The page rendered once by the fit's job.  A fit stored without one (by a run's Fit step) gets a
+    rendering job on the first request: 202 with the job's URL until it is done."""
     with db.session() as s:
-        rows = _group_rows(s, fit_id)
-    first = rows[0]
-    train, _g = load_runs_dataset(db, [int(r) for r in first.run_ids], None)
-    val_ids = (first.result or {}).get("validation_run_ids") or []
-    validate = load_runs_dataset(db, [int(r) for r in val_ids], None)[0] if val_ids else None
-    try:
-        page = render_fit_report(_results(rows), train, validate, predict=predict,
-                                 title=f"{first.gyro_id}: {first.model} v{first.version}")
-    except (BenchError, ValueError, KeyError) as exc:
-        raise Problem(409, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
-    return HTMLResponse(page)
+        group_id = min(r.id for r in _group_rows(s, fit_id))
+        page = s.scalar(select(Analysis.report_html).where(Analysis.fit_id == group_id, Analysis.status == "done",
+                                                           Analysis.report_html.is_not(None))
+                        .order_by(Analysis.id.desc()).limit(1))
+        if page is not None:
+            return HTMLResponse(page)
+        pending = s.scalars(select(Analysis).where(Analysis.fit_id == group_id, Analysis.kind == "fit_report")
+                            .order_by(Analysis.id.desc()).limit(1)).first()
+        if pending is not None and pending.status == "failed":
+            raise Problem(409, "Cannot render the report", pending.error or "the rendering job failed")
+        if pending is None:
+            pending = enqueue(s, "fit_report", {"fit_id": group_id}, requested_by="report", fit_id=group_id)
+        return _accepted(_job_doc(pending))
 
 
 # -------------------------------------------------------------------------------- close loop
-def _close_loop_analysis(db: Database, body: dict[str, Any]) -> tuple[dict[str, Any], Dataset, Dataset]:
-    """Run the close-the-loop analysis a request describes (deterministic: the report page reruns it
-    to draw the residuals, which are not stored)."""
-    from bench.fit.closeloop import close_loop
-
-    train, _ = load_runs_dataset(db, [body["train_run_id"]], body.get("latitude_deg"))
-    validate, _ = load_runs_dataset(db, [body["validation_run_id"]], body.get("latitude_deg"))
-    report = close_loop(train, validate, body["model"], channels=body.get("channels"),
-                        latitude_deg=body.get("latitude_deg"))
-    return report, train, validate
-
-
-def _close_loop_job(db: Database, analysis_id: int, body: dict[str, Any]) -> None:
-    from bench.fit.closeloop import public
-    from bench.jsonsafe import jsonable
-
-    with db.session() as s:
-        a = s.get(Analysis, analysis_id)
-        a.status = "running"
-    try:
-        report, _, _ = _close_loop_analysis(db, body)
-        result, status, error = jsonable(public(report)), "done", None
-    except Problem as exc:
-        result, status, error = None, "failed", exc.detail
-    except Exception as exc:  # noqa: BLE001 - the failure is the analysis' result, reported to the caller
-        result, status, error = None, "failed", f"{type(exc).__name__}: {exc}"
-    with db.session() as s:
-        a = s.get(Analysis, analysis_id)
-        a.status, a.result, a.error, a.finished_at = status, result, error, utcnow()
-
-
-def _analysis_doc(a: Analysis) -> dict[str, Any]:
-    return {"id": a.id, "kind": a.kind, "status": a.status, "gyro_id": a.gyro_id, "request": a.request,
-            "requested_by": a.requested_by, "created_at": iso(a.created_at), "finished_at": iso(a.finished_at),
-            "error": a.error, "result": a.result}
-
-
-@router.post("/close-loop", status_code=202, summary="Close the loop on a training and a held-out run (background)",
+@router.post("/close-loop", status_code=202,
+             summary="Close the loop on a training and a held-out run (a job: 202 with its URL)",
              openapi_extra=problem_codes(404, 409))
-def create_close_loop(body: CloseLoopCreate, request: Request, db: Database = Depends(get_db),
+def create_close_loop(body: CloseLoopCreate, db: Database = Depends(get_db),
                       who: Principal = Depends(require("operator"))):
     if body.train_run_id == body.validation_run_id:
         raise Problem(409, "Same run twice", "the validation run must be another run than the training run (a "
                       "held-out run)")
+    _check_model(body.model)
     with db.session() as s:
-        gyros = set()
-        for rid in (body.train_run_id, body.validation_run_id):
-            run = s.get(Run, rid)
-            if run is None:
-                raise Problem(404, "Unknown run", f"run {rid} does not exist")
-            gyros.add(run.gyro_id)
-        a = Analysis(kind="close_loop", gyro_id=next(iter(gyros)) if len(gyros) == 1 else None,
-                     request=body.model_dump(mode="json"), status="queued", requested_by=who.name, created_at=utcnow())
-        s.add(a)
-        s.flush()
-        doc = _analysis_doc(a)
-    t = threading.Thread(target=_close_loop_job, args=(db, doc["id"], body.model_dump(mode="json")),
-                         name=f"close-loop-{doc['id']}", daemon=True)
-    t.start()
-    request.app.state.jobs.append(t)
-    return doc
+        gyros = _gyros_of(s, [body.train_run_id, body.validation_run_id])
+        job = enqueue(s, "close_loop", body.model_dump(mode="json"), requested_by=who.name,
+                      gyro_id=next(iter(gyros)) if len(gyros) == 1 else None)
+        doc = _job_doc(job)
+    return _accepted(doc)
 
 
 @router.get("/close-loop/{analysis_id}", summary="Close-the-loop analysis: status and report")
@@ -443,15 +367,13 @@ def get_close_loop(analysis_id: RowId, db: Database = Depends(get_db), _: Princi
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:
             raise Problem(404, "Not found", f"close-loop analysis {analysis_id} does not exist")
-        return _analysis_doc(a)
+        return _job_doc(a)
 
 
 @router.get("/close-loop/{analysis_id}/report", response_class=HTMLResponse,
             summary="Close-the-loop report page: residual before/after vs time, T, dT/dt; Allan deviation",
             openapi_extra=problem_codes(409))
 def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Principal = Depends(require("viewer"))):
-    from bench.fit.closeloop_report import render_close_loop_report
-
     with db.session() as s:
         a = s.scalars(select(Analysis).where(and_(Analysis.id == analysis_id, Analysis.kind == "close_loop"))).first()
         if a is None:
@@ -459,15 +381,9 @@ def close_loop_report(analysis_id: RowId, db: Database = Depends(get_db), _: Pri
         if a.status != "done":
             raise Problem(409, "Not ready", f"close-loop analysis {analysis_id} is {a.status}; the report exists once "
                                             "it is done")
-        body = dict(a.request)
-    try:
-        report, train, validate = _close_loop_analysis(db, body)
-        page = render_close_loop_report(report, train, validate,
-                                        title=f"Close-the-loop {analysis_id}: runs {body['train_run_id']} -> "
-                                              f"{body['validation_run_id']}")
-    except (BenchError, ValueError, KeyError) as exc:
-        raise Problem(409, "Cannot render the report", f"{type(exc).__name__}: {exc}") from None
-    return HTMLResponse(page)
+        if a.report_html is None:
+            raise Problem(404, "No report", f"close-loop analysis {analysis_id} has no stored report")
+        return HTMLResponse(a.report_html)
 
 
 def _safe_name(text: str) -> str:

@@ -232,7 +232,8 @@ def _finish(db, run_id: int, status: str, as_json: bool) -> None:
     report = run_report(db, run_id)
     doc = {"run_id": run_id, "status": report["status"], "outcome": status, "error": report["error"],
            "step": report["step"], "n_steps": report["n_steps"], "progress": report["progress"],
-           "frames": report["frames"], "segments": report["segments"], "gaps": report["gaps"],
+           "frames": report["frames"], "frames_lost": report["frames_lost"],
+           "bench_seconds_lost": report["bench_seconds_lost"], "segments": report["segments"], "gaps": report["gaps"],
            "suspensions": report["suspensions"], "fits": report["fits"]}
     typer.secho(f"run {run_id} {status}: {report['frames']} frames, {len(report['gaps'])} gaps, "
                 f"{len(report['suspensions'])} suspensions" + (f"; {report['error']}" if report["error"] else ""),
@@ -482,8 +483,10 @@ def show_command(
         lines.append(f"error: {report['error']}")
     lines += [f"step: {report['step']} / {report['n_steps']} {report['step_name'] or ''}",
               f"progress: {100 * report['progress']:.1f}%", f"frames: {report['frames']}",
+              f"lost: {report['frames_lost']} frames, {report['bench_seconds_lost']:.3f} bench seconds",
               f"segments: {report['segments']}", f"gaps: {len(report['gaps'])}"]
-    lines += [f"  {g['t_from']:.1f} .. {g['t_to']:.1f} ({g['duration_s']:.1f} s) {g['reason']}" for g in report["gaps"]]
+    lines += [f"  {g['t_from']:.1f} .. {g['t_to']:.1f} ({g['duration_s']:.1f} s) {g['reason']}, "
+              f"{g['frames_missing']} frames missing" for g in report["gaps"]]
     lines.append(f"suspensions: {len(report['suspensions'])}")
     lines += [f"  {x['t_from']:.1f} .. {x['t_to'] if x['t_to'] is None else round(x['t_to'], 1)} {x['reason']}"
               for x in report["suspensions"]]

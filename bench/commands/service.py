@@ -1,21 +1,23 @@
 """``bench serve``, ``bench worker``, ``bench coefficients`` and ``bench import``.
 
-* ``serve``: the HTTP API plus one worker per configured bench in one process.  Embedded default: the
-  SQLite file (``BENCH_DATABASE_URL`` overrides) and a simulated bench at ``--speed``; with
-  ``--config FILE`` (repeatable) the workers drive the benches those files describe.
+* ``serve``: the HTTP API plus one worker per configured bench in one process, and an analysis worker
+  (``bench worker --analysis``) as a child process.  Embedded default: the SQLite file
+  (``BENCH_DATABASE_URL`` overrides) and a simulated bench at ``--speed``; with ``--config FILE``
+  (repeatable) the workers drive the benches those files describe.
 * ``worker``: one bench's worker on its own (the API may run elsewhere; killing either leaves the
-  other going, and a killed worker's run is resumed when a worker for that bench returns).
+  other going, and a killed worker's run is resumed when a worker for that bench returns); between
+  runs it executes analysis jobs.  ``--analysis``: a worker for analysis jobs only.
 * ``coefficients``: a gyro's accepted coefficients from the database, or one model exported for firmware
   (``--format json|px4|ardupilot|c-header``, ``bench.fit.firmware``; refused with the reason, exit code 3).
 * ``import``: a measured-data CSV (v1) stored as a completed run, so it can be fitted like a recorded one.
 """
 from __future__ import annotations
 
-import os
-
 import json
+import os
 import secrets
 import signal
+import subprocess
 import sys
 from pathlib import Path
 from typing import Any, Optional
@@ -125,11 +127,12 @@ def serve_command(
     tokens = _tokens_or_generate()
     sim = None
     workers = []
+    analysis_worker = None
     try:
         if config:
             for path in config:
                 cfg, clock_doc = load_bench_file(path)
-                workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None)))
+                workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None), run_jobs=False))
         else:
             from bench.clock import parse_speed
             from bench.settings import load_settings
@@ -141,11 +144,12 @@ def serve_command(
             clock.hold_file = load_settings().sim_hold_file or None
             sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
             cfg = sim.config
-            workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim))
+            workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim, run_jobs=False))
             typer.echo(f"simulated bench {cfg.name!r} in lockstep, "
                        f"{'at most x' + format(pace, 'g') if pace else 'as fast as the host can'}", err=True)
         for w in workers:
             w.start_thread()
+        analysis_worker = _start_analysis_worker(db.url, log_level, log_format)
         typer.echo(f"database {db.dialect}; benches: {', '.join(w.bench_name for w in workers)}; "
                    f"API on http://{host}:{port}/docs", err=True)
         # uvicorn shuts down gracefully on SIGINT and SIGTERM, then raises the signal again with the
@@ -157,15 +161,33 @@ def serve_command(
     finally:
         for w in workers:
             w.stop()
+        if analysis_worker is not None:
+            analysis_worker.terminate()
+            try:
+                analysis_worker.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                analysis_worker.kill()
         if sim is not None:
             sim.stop()
         db.dispose()
 
 
+def _start_analysis_worker(database_url: str, log_level: str, log_format: str) -> subprocess.Popen:
+    """`bench worker --analysis` as a child process on the same database: fits, close-the-loop and report
+    rendering never run in the API's process."""
+    env = {**os.environ, "BENCH_DATABASE_URL": database_url}
+    return subprocess.Popen([sys.executable, "-m", "bench", "worker", "--analysis", "--log-level", log_level,
+                             "--log-format", log_format], env=env)
+
+
 # ----------------------------------------------------------------------------------------- worker
 @guarded
 def worker_command(
-    bench: str = typer.Option(..., "--bench", help="name of the bench this worker serves"),
+    bench: Optional[str] = typer.Option(None, "--bench", help="name of the bench this worker serves (it also "
+                                        "executes analysis jobs between runs)"),
+    analysis: bool = typer.Option(False, "--analysis", help="an analysis worker: executes the queued fit, "
+                                  "close-the-loop and report jobs only (no bench)"),
+    jobs: bool = typer.Option(True, "--jobs/--no-jobs", help="a bench worker executes analysis jobs between runs"),
     config: Optional[str] = typer.Option(None, "--config", help="bench config JSON or a simulated bench's "
                                          "endpoints file; default: the configuration stored for the bench"),
     speed: Optional[float] = typer.Option(None, "--speed", min=1.0, help="accelerated clock (when the bench file "
@@ -182,7 +204,8 @@ def worker_command(
     metrics_addr: str = typer.Option("127.0.0.1", "--metrics-addr", help="address of the metrics server"),
     db_url: Optional[str] = db_option(),
 ) -> None:
-    """Serve one bench: claim its queued runs, execute them, resume a run whose worker died."""
+    """Serve one bench: claim its queued runs, execute them, resume a run whose worker died; or, with
+    --analysis, execute analysis jobs (fits, close-the-loop, reports) and re-run those whose worker died."""
     from bench.config import BenchConfig
     from bench.storage import open_database
     from bench.storage.models import Bench
@@ -192,7 +215,17 @@ def worker_command(
     from bench.logs import configure_logging
 
     configure_logging(log_level, log_format)
+    if analysis == (bench is not None):
+        fail("give either --bench NAME (a bench worker) or --analysis (an analysis worker)")
     db = open_database(db_url)
+    if analysis:
+        from bench.jobs import JobRunner
+
+        runner = JobRunner(db, heartbeat_s=heartbeat_s, stale_after_s=stale_after_s, poll_s=poll_s)
+        signal.signal(signal.SIGTERM, lambda *_: runner.stop())
+        typer.echo(f"analysis worker {runner.worker_id} ({db.dialect})", err=True)
+        runner.run_forever()
+        return
     clock_doc = None
     if config:
         cfg, clock_doc = load_bench_file(config)
@@ -205,7 +238,7 @@ def worker_command(
                 fail(f"bench {bench!r} has no stored configuration; give --config FILE")
             cfg = BenchConfig.model_validate(row.config)
     worker = Worker(db, bench, cfg, None, _clock(clock_doc, speed), heartbeat_s=heartbeat_s,
-                    stale_after_s=stale_after_s, poll_s=poll_s)
+                    stale_after_s=stale_after_s, poll_s=poll_s, run_jobs=jobs)
     signal.signal(signal.SIGTERM, lambda *_: worker.stop())
     if metrics_port is not None:
         from bench.metrics import serve_worker_metrics

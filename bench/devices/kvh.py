@@ -269,8 +269,9 @@ class FrameDecoder:
       frames is ambiguous and shows as fewer; link gaps are reported separately by the link);
       ``invalid_status`` frames whose status is not the all-valid value (0x77 / 0x7F).
     - ``feed(chunk, host_time, frame_period_s)`` timestamps the frames of one chunk: the last
-      gets ``host_time``; earlier ones are back-dated by the nominal period (they left the
-      device one period apart), never earlier than the previous frame's time.
+      gets ``host_time``; earlier ones are back-dated by the nominal period per sequence step (they
+      left the device one period apart; a frame lost on the line keeps its period), never earlier
+      than the previous frame's time.
     """
 
     def __init__(self, kind: str = "kvh_a", temp_scale: float = 0.01, stats: LinkStats | None = None) -> None:
@@ -348,14 +349,18 @@ class FrameDecoder:
         stats = self.stats
         last_seq = self._last_seq
         count = len(starts)
-        t = host_time - (count - 1) * period
+        values = [unpack(buf, i + 4) for i in starts]
+        # the frames left the device one period per sequence step apart (frames lost on the line keep
+        # their period): back-date from the last one, which left just before host_time
+        steps = [(values[k][seq_i] - values[k - 1][seq_i]) & 0x7F or 128 for k in range(1, count)]
+        t = host_time - sum(steps) * period
         if t < self._last_time:
             t = self._last_time
         out: list[GyroFrame] = []
         append = out.append
         make = _make_frame
-        for i in starts:
-            v = unpack(buf, i + 4)
+        for k, i in enumerate(starts):
+            v = values[k]
             seq = v[seq_i]
             if last_seq is not None:
                 missing = (seq - last_seq - 1) & 0x7F
@@ -369,7 +374,8 @@ class FrameDecoder:
             ft = t if t < host_time else host_time
             append(make(ft, seq, (v[0], v[1], v[2]), (v[3], v[4], v[5]), status, v[temp_i] * scale,
                              buf[i:i + length], (v[6], v[7], v[8]) if has_freq else None))
-            t += period
+            if k + 1 < count:
+                t += steps[k] * period
         stats.frames += count
         self._last_seq = last_seq
         self._last_time = out[-1].host_time

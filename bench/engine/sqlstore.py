@@ -101,6 +101,16 @@ class SqlRunStore:
         self._writers: dict[int, FrameWriter] = {}
         self._table: dict[int, dict[int, AxisState]] = {}
         self._lock = threading.Lock()
+        # the executing worker's lease (bench.engine.lease.RunLease), set by the worker: every owner write
+        # below checks, in its own transaction with the run row locked, that the row still names it
+        self.lease = None
+
+    def _owned(self, s, rid: int):
+        """The run row, locked; ``LeaseLost`` if a lease is set and the row names another worker."""
+        run = queries.get_run(s, rid, for_update=True)
+        if self.lease is not None:
+            self.lease.check_row(run)
+        return run
 
     # ---- writers ----------------------------------------------------------------------------
     def writer(self, run_id: str | int) -> FrameWriter:
@@ -135,7 +145,7 @@ class SqlRunStore:
     def create_run(self, run_id: str, plan: dict[str, Any], summary: dict[str, Any], t: float) -> None:
         rid = run_key(run_id)
         with self.db.session() as s:
-            run = queries.get_run(s, rid, for_update=True)
+            run = self._owned(s, rid)
             if run.checkpoint is not None:
                 raise StorageError(f"run {rid} has already started (status {run.status}); resume it instead")
             if run.status not in (RunStatus.QUEUED.value, RunStatus.RUNNING.value):
@@ -160,7 +170,7 @@ class SqlRunStore:
         rid = run_key(run_id)
         stored = RunStatus.COMPLETED.value if status == RunOutcome.STOPPED else str(status)
         with self.db.session() as s:
-            run = queries.get_run(s, rid, for_update=True)
+            run = self._owned(s, rid)
             live = dict(run.live or {})
             if stored == run.status and live.get("engine_status") == status:
                 return
@@ -178,7 +188,7 @@ class SqlRunStore:
         """Mark ``owner`` as the live executor of the run (and refresh ``live["progress"]``)."""
         rid = run_key(run_id)
         with self.db.session() as s:
-            run = queries.get_run(s, rid, for_update=True)
+            run = self._owned(s, rid)
             run.worker = owner
             run.heartbeat_at = utcnow()
             if progress is not None:
@@ -189,6 +199,7 @@ class SqlRunStore:
         progress = checkpoint.get("progress") or {}
         percent = progress.get("percent")
         with self.db.session() as s:
+            self._owned(s, rid)
             queries.save_checkpoint(s, rid, jsonable(checkpoint), current_step=int(checkpoint.get("step_index", 0)),
                                     progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)))
 
@@ -200,6 +211,7 @@ class SqlRunStore:
                         info: dict[str, Any] | None = None) -> None:
         rid = run_key(run_id)
         with self.db.session() as s:
+            self._owned(s, rid)
             step = s.scalars(select(Step).where(Step.run_id == rid, Step.index == index)).first()
             if step is None:
                 raise StorageError(f"run {rid} has no step {index} ({kind})")
@@ -214,6 +226,8 @@ class SqlRunStore:
 
     def add_event(self, run_id: str, t: float, level: str, kind: str, message: str,
                   data: dict[str, Any] | None = None) -> None:
+        if self.lease is not None:          # events go out with the writer's batches (fenced by its token)
+            self.lease.check()
         self.writer(run_id).add_event(kind[:32], message, t_bench=t, data=jsonable({"level": level, **(data or {})}))
 
     # ---- data -------------------------------------------------------------------------------
@@ -279,11 +293,13 @@ class SqlRunStore:
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         with self.db.session() as s:
+            self._owned(s, run_key(run_id))
             return int(queries.begin_suspension(s, run_key(run_id), t_from, reason).id)
 
     def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None:
         rid = run_key(run_id)
         with self.db.session() as s:
+            self._owned(s, rid)
             sus = s.get(Suspension, int(suspension_id))
             if sus is None or sus.run_id != rid:
                 raise StorageError(f"run {rid} has no suspension {suspension_id}")
@@ -292,7 +308,7 @@ class SqlRunStore:
 
     def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None:
         with self.db.session() as s:
-            run = queries.get_run(s, run_key(run_id), for_update=True)
+            run = self._owned(s, run_key(run_id))
             live = dict(run.live or {})
             fits = dict(live.get("fits") or {})
             fits[str(step_index)] = result
@@ -333,6 +349,9 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "percent": progress_doc.get("percent"),
             "remaining_bench_s": progress_doc.get("remaining_bench_s"),
             "frames": frames,
+            # one gap row per outage: their frames and spans add up to what the run lost
+            "frames_lost": int(sum(g.frames_missing or 0 for g in gaps)),
+            "bench_seconds_lost": float(sum(g.t_to - g.t_from for g in gaps)),
             "segments": n_segments,
             "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "duration_s": g.t_to - g.t_from, "reason": g.reason,
                       "frames_missing": g.frames_missing, "after_index": g.after_index} for g in gaps],

@@ -46,7 +46,8 @@ from bench.storage import codec
 from bench.storage.db import Database
 from bench.storage.errors import BufferFull, StorageError, StorageUnavailable, UnknownRun, WriterFenced
 from bench.storage.models import (SECONDS_PER_BLOCK, SEGMENT_KINDS, SUM_FIELDS, Event, FrameChunk, FrameCursor,
-                                  FrameSecond, Gap, ProbeReadingRow, Run, Segment, Telemetry, utcnow)
+                                  FrameSecond, GAP_KINDS, Gap, ProbeReadingRow, Run, Segment, Telemetry,
+                                  utcnow)
 
 log = logging.getLogger(__name__)
 
@@ -144,6 +145,39 @@ class _Batch:
         return not self.chunks and not any(self.rows.values())
 
 
+@dataclass
+class _Outage:
+    """A reported outage whose frame count the next frame settles."""
+    kind: str
+    t_from: float
+
+
+def gap_kind(reason: str) -> str:
+    """The kind of an outage (``GAP_KINDS``) from the words of whoever reported it."""
+    text = reason.lower()
+    if text in GAP_KINDS:
+        return text
+    if "link" in text:
+        return "link"
+    if "interrupt" in text or "resume" in text or "crash" in text:
+        return "crash_resume"
+    if "suspen" in text:
+        return "suspension"
+    if "corrupt" in text or "sequence" in text:
+        return "corruption"
+    return reason[:64]          # a reporter's own word, kept
+
+
+def _last_sequence(kind: str, size: int, raw: bytes) -> int | None:
+    """The sequence number of the last frame of a stored chunk (None when the layout has none)."""
+    try:
+        decoded = codec.decode_frames(kind, raw[-size:], size)
+    except (codec.UnknownFrameKind, ValueError):
+        return None
+    seq = getattr(decoded, "sequence", None)
+    return int(seq[-1]) if seq is not None and len(seq) else None
+
+
 def _is_transient(exc: BaseException) -> bool:
     if isinstance(exc, (OperationalError, InterfaceError)):
         return True
@@ -201,6 +235,7 @@ class FrameWriter:
         self._token = uuid.uuid4().hex
         self._cond = threading.Condition()
         self._open: list[GyroFrame] = []
+        self._open_times: list[float] = []         # the stored times of the open frames
         self._chunks: list[_Chunk] = []
         self._rows: dict[str, list[dict[str, Any]]] = {name: [] for name in _ROW_TABLES}
         self._n_rows = 0
@@ -222,9 +257,12 @@ class FrameWriter:
         self._closing = False
         self._abandoned = False
         self._closed = False
-        self._prev_seq: int | None = None
-        self._prev_time: float | None = None
         self._thread: threading.Thread | None = None
+        self._prev_seq: int | None = None
+        self._prev_time: float | None = None       # stored time of the last frame
+        self._prev_host: float | None = None       # its host time
+        self._jitter = 0.0                         # how far host stamps stray from the counted time, s
+        self._by_seq: dict[int, int] = {}          # recent gap rows (by id): frames lost by the counter alone
         self._take_over()
         _LIVE.add(self)
         if autostart:
@@ -241,7 +279,8 @@ class FrameWriter:
                 cur = conn.execute(select(FrameCursor.next_index, FrameCursor.batch_seq, FrameCursor.t_last)
                                    .where(FrameCursor.run_id == self.run_id)).first()
                 last = conn.execute(select(FrameChunk.first_index, FrameChunk.count, FrameChunk.t_first,
-                                           FrameChunk.t_last).where(FrameChunk.run_id == self.run_id)
+                                           FrameChunk.t_last, FrameChunk.frame_kind, FrameChunk.frame_size,
+                                           FrameChunk.raw).where(FrameChunk.run_id == self.run_id)
                                     .order_by(FrameChunk.first_index.desc()).limit(1)).first()
                 stored_next = last.first_index + last.count if last else 0
                 if cur is None:
@@ -261,10 +300,16 @@ class FrameWriter:
         self._next_index = next_index
         self._committed_index = next_index
         self._seq = seq
-        self._resume: tuple[float, int, float | None] | None = None
+        self._outage: _Outage | None = None
+        self._measured_rate: float | None = None
         if last is not None:
+            # the run resumes after a crash: the next frame closes a crash/resume outage, counted from the
+            # last stored frame's sequence number (decoded from its stored bytes) and the elapsed time
             rate = (last.count - 1) / (last.t_last - last.t_first) if last.t_last > last.t_first else None
-            self._resume = (last.t_last, next_index - 1, rate)
+            self._measured_rate = rate
+            self._prev_time = float(last.t_last)
+            self._prev_seq = _last_sequence(last.frame_kind, last.frame_size, last.raw)
+            self._outage = _Outage(gap_kind(self._resume_reason), float(last.t_last))
 
     # ------------------------------------------------------------------ producer API
     def add(self, frame: GyroFrame) -> int:
@@ -289,51 +334,112 @@ class FrameWriter:
         if self._buffered_frames >= self.max_buffered_frames:
             raise BufferFull(f"run {self.run_id}: {self._buffered_frames} frames buffered and the database is "
                              f"not taking them ({self._last_error or 'no error yet'})")
-        t = frame.host_time
+        t = self._stamp_and_account(frame)
         if self._open:
-            first = self._open[0]
-            if len(first.raw) != size or abs(t - first.host_time) > codec.MAX_CHUNK_SPAN_S:
+            if len(self._open[0].raw) != size or t - self._open_times[0] > codec.MAX_CHUNK_SPAN_S:
                 self._seal_locked()
-        if self._resume is not None:
-            t_from, after, rate = self._resume
-            rate = self.nominal_rate_hz or rate
-            missing = max(0, round((t - t_from) * rate) - 1) if rate else None
-            self._queue_row("gaps", {"run_id": self.run_id, "t_from": t_from, "t_to": t,
-                                     "reason": self._resume_reason, "frames_missing": missing, "after_index": after})
-            self._resume = None
-        elif self.sequence_modulus and self._prev_seq is not None:
-            self._check_sequence(frame)
         self._prev_seq, self._prev_time = frame.sequence, t
         self._open.append(frame)
+        self._open_times.append(t)
         self._next_index += 1
         self._buffered_frames += 1
         if len(self._open) >= self.chunk_frames:
             self._seal_locked()
 
-    def _check_sequence(self, frame: GyroFrame) -> None:
-        mod = self.sequence_modulus
-        assert mod is not None and self._prev_seq is not None and self._prev_time is not None
-        if frame.sequence == (self._prev_seq + 1) % mod:
-            return
-        by_seq = (frame.sequence - self._prev_seq - 1) % mod
-        reason, missing = "sequence", by_seq
-        if self.nominal_rate_hz:
-            by_time = round((frame.host_time - self._prev_time) * self.nominal_rate_hz) - 1
-            if by_time >= mod:       # wrapped at least once: the counter alone cannot tell how often
-                missing = by_seq + mod * round((by_time - by_seq) / mod)
-            elif by_time < by_seq / 2:
-                reason, missing = "sequence_disorder", None
-        self._queue_row("gaps", {"run_id": self.run_id, "t_from": self._prev_time, "t_to": frame.host_time,
-                                 "reason": reason, "frames_missing": missing, "after_index": self._next_index - 1})
+    # ------------------------------------------------------------------ time and loss accounting
+    @property
+    def _rate(self) -> float | None:
+        return self.nominal_rate_hz or self._measured_rate
+
+    def _stamp_and_account(self, frame: GyroFrame) -> float:
+        """The stored time of ``frame`` (strictly after the previous one), and a gap row when frames were
+        lost before it.
+
+        Frames lost: the sequence counter's advance minus one, its wraps resolved with the elapsed host
+        time and the data rate (``(elapsed * rate - 1 - by_seq) / modulus`` whole turns); without a
+        counter, the elapsed time times the rate.  Turns are only counted when the host clock proves them
+        beyond the jitter of its stamps (decaying maximum of host minus counted time): a loss of more
+        than a turn hidden in that jitter is undercounted by whole turns.  Stored time: the previous stored time plus the
+        frames' advance over the rate, pulled gently (gain ``TIME_GAIN``) towards the host time: frames
+        taken off the line in one read share a host time, but left the device one period apart.  After
+        an outage (host time ahead by more than ``REANCHOR_S``) the host time is taken as it is."""
+        host = frame.host_time
+        prev_t, rate, mod = self._prev_time, self._rate, self.sequence_modulus
+        prev_host, self._prev_host = self._prev_host, host
+        if prev_t is None:
+            return host
+        # elapsed on the host clock between the frames' stamps (a read's frames share one stamp; the
+        # stored times follow the counter, so they would see the read latency as lost frames)
+        elapsed = host - (prev_host if prev_host is not None else prev_t)
+        by_time = elapsed * rate - 1 if rate else None
+        if mod and self._prev_seq is not None:
+            by_seq = (frame.sequence - self._prev_seq - 1) % mod
+            # whole turns of the counter the host clock proves, beyond its own jitter (reads stamp late)
+            slack = 0.0 if self._outage is not None or not rate else max(self._jitter, self.STAMP_JITTER_S) * rate
+            turns = max(0, round((by_time - by_seq - slack) / mod)) if by_time is not None else 0
+            missing: int | None = by_seq + mod * turns
+        else:
+            missing = max(0, round(by_time)) if by_time is not None else None
+        if rate:
+            predicted = prev_t + ((missing or 0) + 1) / rate
+            error = host - predicted
+            if error <= self.REANCHOR_S:
+                self._jitter = max(abs(error), self._jitter * self.JITTER_DECAY)
+            t = host if error > self.REANCHOR_S else predicted + self.TIME_GAIN * error
+            t = max(t, prev_t + 0.5 / rate)
+        else:
+            t = max(host, prev_t + self.MIN_STEP_S)
+        if self._outage is not None or missing:
+            if self._outage is not None:
+                kind, t_from = self._outage.kind, min(self._outage.t_from, prev_t)
+            else:        # a second's worth of frames or more: the line was down or silent, not noisy
+                kind, t_from = ("link" if (missing is not None and rate and missing >= rate * self.REANCHOR_S)
+                                or (not rate and elapsed > self.REANCHOR_S) else "corruption"), prev_t
+            row = {"run_id": self.run_id, "t_from": t_from, "t_to": t, "reason": kind, "frames_missing": missing,
+                   "after_index": self._next_index - 1}
+            self._queue_row("gaps", row)
+            if mod and self._prev_seq is not None:
+                self._by_seq[id(row)] = (frame.sequence - self._prev_seq - 1) % mod
+                while len(self._by_seq) > 256:
+                    self._by_seq.pop(next(iter(self._by_seq)))
+            self._outage = None
+        return t
+
+    TIME_GAIN = 0.02            # per frame: the stored clock follows the host clock over ~50 frames
+    REANCHOR_S = 1.0            # host time this far ahead of the counted time: an outage, restart from it
+    STAMP_JITTER_S = 1.0        # host stamps may lag by up to a read: shorter silences prove no wrap
+    JITTER_DECAY = 0.9999       # per frame: the host stamps' jitter estimate forgets over ~10^4 frames
+    MIN_STEP_S = 2e-6           # without a rate: stored times still strictly increase (1 us resolution)
 
     def record_gap(self, t_from: float, t_to: float, reason: str, frames_missing: int | None = None) -> None:
-        """Record a known outage (e.g. ``LinkStats.link_gaps``), written with the next batch."""
+        """Record a known outage (a link gap from ``LinkStats.link_gaps``, the engine's interruption on
+        resume), one gap row per outage: if the frames after it already arrived, the row their sequence
+        jump made is that outage's row (its kind becomes this one's); if not, the next frame closes it and
+        counts its frames.  ``frames_missing`` given: stored as is in a row of its own."""
         if not t_to >= t_from:
             raise ValueError(f"gap t_to {t_to} is before t_from {t_from}")
+        kind = gap_kind(reason)
         with self._cond:
             self._check_usable()
+            if frames_missing is None:
+                for row in reversed(self._rows["gaps"]):
+                    if row["t_from"] <= t_to and row["t_to"] >= t_from and row["reason"] in ("corruption", "link"):
+                        row["reason"] = kind
+                        by_seq, mod, rate = self._by_seq.get(id(row)), self.sequence_modulus, self._rate
+                        if by_seq is not None and mod and rate:     # the outage's own span settles the wraps
+                            span = (max(t_to, row["t_to"]) - min(t_from, row["t_from"])) * rate - 1
+                            row["frames_missing"] = by_seq + mod * max(0, round((span - by_seq) / mod))
+                        return
+                if self._prev_time is None or t_to >= self._prev_time:
+                    start = t_from if self._outage is None else min(t_from, self._outage.t_from)
+                    self._outage = _Outage(kind if self._outage is None or kind != "link" else self._outage.kind,
+                                           start)
+                    return
+                log.warning("run %s: %s outage %.3f-%.3f reported after its frames were stored; its frames "
+                            "are counted in the row of the sequence jump", self.run_id, kind, t_from, t_to)
+                return
             self._queue_row("gaps", {"run_id": self.run_id, "t_from": float(t_from), "t_to": float(t_to),
-                                     "reason": reason, "frames_missing": frames_missing,
+                                     "reason": kind, "frames_missing": frames_missing,
                                      "after_index": self._next_index - 1 if self._next_index else None})
 
     def add_probe_readings(self, t: float, readings: Iterable[ProbeReading]) -> None:
@@ -412,9 +518,9 @@ class FrameWriter:
         frames = self._open
         if not frames:
             return
-        self._open = []
+        times = np.asarray(self._open_times, dtype=np.float64)
+        self._open, self._open_times = [], []
         n = len(frames)
-        times = np.fromiter((f.host_time for f in frames), np.float64, n)
         gyro = np.array([f.gyro for f in frames], dtype=np.float64).reshape(n, 3)
         accel = np.array([f.accel for f in frames], dtype=np.float64).reshape(n, 3)
         temps = np.fromiter((math.nan if f.temperature_c is None else f.temperature_c for f in frames),

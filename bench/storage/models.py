@@ -281,8 +281,14 @@ class Segment(Base):
     labels: Mapped[dict[str, Any] | None]
 
 
+GAP_KINDS = ("link", "corruption", "crash_resume", "suspension")
+
+
 class Gap(Base):
-    """Time with missing frames: link drop, sequence jump, or writer resume after a crash."""
+    """One outage: time with missing frames and how many (``frames_missing``, from the sequence counter
+    and the data rate).  ``reason`` is its kind (GAP_KINDS): ``link`` (the line was down or silent),
+    ``corruption`` (frames rejected on the line, a sequence jump), ``crash_resume`` (the writer
+    resumed the run after a crash), ``suspension`` (the run was suspended)."""
 
     __tablename__ = "gaps"
     __table_args__ = (Index(None, "run_id", "t_from"),)
@@ -345,11 +351,21 @@ class RunRequest(Base):
     consumed_at: Mapped[dt.datetime | None]
 
 
+JOB_KINDS = ("fit", "close_loop", "fit_report")
+
+
 class Analysis(Base):
-    """A long computation requested through the API (``kind`` "close_loop"), with its result."""
+    """A durable analysis job (``kind`` one of JOB_KINDS) requested through the API, with its result.
+
+    Workers claim jobs like runs (``bench.jobs``): ``worker`` holds the job while ``heartbeat_at`` is
+    fresh; a job whose heartbeat went stale is claimed again and re-run (``attempts`` counts claims).
+    Only the holder may finish it (the finishing ``UPDATE`` is guarded by ``worker``).  ``report_html``
+    is the report page, rendered once by the job; ``fit_id`` is the fit version (its smallest row id)
+    a fit or fit-report job produced or rendered (0004_analysis_jobs)."""
 
     __tablename__ = "analyses"
-    __table_args__ = (CheckConstraint(_in("status", ANALYSIS_STATUSES), name="status"),)
+    __table_args__ = (CheckConstraint(_in("status", ANALYSIS_STATUSES), name="status"),
+                      Index(None, "status", "id"), Index(None, "fit_id"))
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     kind: Mapped[str] = mapped_column(String(32))
@@ -361,3 +377,9 @@ class Analysis(Base):
     requested_by: Mapped[str] = mapped_column(String(64), default="")
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     finished_at: Mapped[dt.datetime | None]
+    worker: Mapped[str | None] = mapped_column(String(128))
+    heartbeat_at: Mapped[dt.datetime | None]
+    started_at: Mapped[dt.datetime | None]
+    attempts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    fit_id: Mapped[int | None] = mapped_column(Integer)
+    report_html: Mapped[str | None] = mapped_column(Text)

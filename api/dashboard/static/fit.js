@@ -53,9 +53,16 @@ async function accept(id) {
 
 async function loadReport() {
   const box = document.getElementById("report");
-  box.replaceChildren(el("p.muted", "Rendering the report (it re-reads the runs' data)…"));
+  box.replaceChildren(el("p.muted", "Loading the report…"));
   try {
-    const html = await api(`/fits/${FIT_ID}/report`);
+    /* 202: not rendered yet; a worker renders it (job in the answer): ask again until it is there */
+    let html = await api(`/fits/${FIT_ID}/report`);
+    while (typeof html !== "string") {
+      if (html.status === "failed") throw new Error(html.error || "the report job failed");
+      box.replaceChildren(el("p.muted", `Rendering the report (job ${html.id}, ${html.status})…`));
+      await new Promise((resolve) => setTimeout(resolve, 1000));
+      html = await api(`/fits/${FIT_ID}/report`);
+    }
     const frame = el("iframe#report-frame.report", { sandbox: "", title: "fit report" });
     frame.srcdoc = html;
     box.replaceChildren(frame);

@@ -168,6 +168,7 @@ function renderSteps(run) {
     el("td.num", String(s.index + 1)), el("td", s.kind), el("td", statusBadge(s.status)),
     el("td.num", rel(s.started_t)), el("td.num", rel(s.finished_t))));
   const extra = [];
+  if ((run.gaps || []).length) extra.push(el("li", `lost: ${run.frames_lost} frames, ${fmtDuration(run.bench_seconds_lost)} of bench time`));
   for (const g of run.gaps || []) extra.push(el("li", `gap ${rel(g.t_from)} to ${rel(g.t_to)}: ${g.reason} (${g.frames_missing} frames missing)`));
   for (const s of run.suspensions || []) extra.push(el("li", `suspended ${rel(s.t_from)} to ${rel(s.t_to)}: ${s.reason}`));
   fill(document.getElementById("steps"),

@@ -1,0 +1,141 @@
+"""Fencing drill, on SQLite and PostgreSQL: the worker executing a run freezes past its lease (a
+simulated SIGSTOP: its engine thread is held inside a device call and its heartbeat thread is held),
+a second worker takes the run over and completes it; when the first wakes (SIGCONT), it sends no
+command to any device, writes nothing to the run, leaves its run loop; the run ends ``completed`` and
+every frame index is stored once.
+
+The freeze is deterministic: the first worker cannot go on while frozen, whatever the wall clock does;
+the test waits on states (takeover, completion), never on a duration.
+"""
+from __future__ import annotations
+
+import threading
+import uuid
+
+import pytest
+from sqlalchemy import select
+
+from bench.storage import open_database, queries
+from bench.storage.models import Event, FrameChunk
+from bench.engine import Devices
+from tests.api_support import SHORT_RAMP, DoublesBench, register_bench, start_worker, unique_bench, wait_for
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db(request, tmp_path):
+    if request.param == "sqlite":
+        database = open_database(f"sqlite:///{tmp_path / 'fence.sqlite'}")
+    else:
+        database = open_database(request.getfixturevalue("pg_url"), schema=f"t_{uuid.uuid4().hex[:8]}")
+    yield database
+    database.dispose()
+
+
+class Freezer:
+    """Records every call the worker's devices receive; once ``freeze`` is set, the next call (made, so
+    sent before the stop) holds its thread until ``thaw``."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+        self.freeze = threading.Event()
+        self.frozen = threading.Event()
+        self.thaw = threading.Event()
+        self.calls_at_freeze: int | None = None
+
+    def hold(self) -> None:
+        if self.freeze.is_set() and not self.thaw.is_set():
+            if self.calls_at_freeze is None:
+                self.calls_at_freeze = len(self.calls)
+                self.frozen.set()
+            self.thaw.wait()
+
+
+class Recorded:
+    def __init__(self, name: str, device, freezer: Freezer) -> None:
+        self._name, self._device, self._freezer = name, device, freezer
+
+    def __getattr__(self, attr):
+        value = getattr(self._device, attr)
+        if not callable(value):
+            return value
+
+        def call(*args, **kwargs):
+            result = value(*args, **kwargs)
+            self._freezer.calls.append(f"{self._name}.{attr}")
+            self._freezer.hold()
+            return result
+
+        return call
+
+
+def test_a_worker_frozen_past_its_lease_wakes_fenced_and_the_run_completes(db):
+    name = unique_bench()
+    register_bench(db, name)
+    doubles = DoublesBench(speed=150.0)
+    freezer = Freezer()
+
+    plain = doubles.factory
+
+    def recorded_factory(config):              # worker A's devices only
+        d = plain(config)
+        return Devices(**{k: Recorded(k, getattr(d, k), freezer) for k in ("chamber", "turntable", "gyro",
+                                                                          "probes", "psu")})
+
+    with db.session() as s:
+        run_id = queries.create_run(s, procedure="thermal_ramp", parameters=dict(SHORT_RAMP, soak_h=0.2),
+                                    gyro_id="RLG-F", bench_name=name).id
+    doubles.factory = recorded_factory
+    a, a_thread = start_worker(db, name, doubles)
+    doubles.factory = plain
+    beat = a._heartbeat
+
+    def frozen_heartbeat(rid):
+        if freezer.freeze.is_set():
+            freezer.thaw.wait()
+        beat(rid)
+
+    a._heartbeat = frozen_heartbeat
+    b = None
+    try:
+        wait_for(lambda: a.current_run == run_id and len(freezer.calls) > 50, 30, "worker A driving the run")
+        freezer.freeze.set()                                   # SIGSTOP
+        wait_for(freezer.frozen.is_set, 30, "worker A frozen")
+        b, b_thread = start_worker(db, name, doubles)
+        wait_for(lambda: _run(db, run_id).worker == b.worker_id, 60, "worker B taking the run over")
+        done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, 120,
+                        "the run to end under worker B")
+        assert done.status == "completed", done.error
+        frozen_at = freezer.calls_at_freeze
+        freezer.thaw.set()                                     # SIGCONT
+        wait_for(lambda: any(rid == run_id for rid, _ in a.runs_done), 60, "worker A leaving its run loop")
+        assert dict(a.runs_done)[run_id] == "lost"
+        # after the wake: no command; only its own connections released (close_devices: the link's reader
+        # thread and ports closed, nothing sent)
+        assert freezer.calls[frozen_at:] == ["gyro.stop", "chamber.close", "turntable.close", "psu.close"], \
+            "worker A touched a device after losing its lease"
+        final = _run(db, run_id)
+        assert final.status == "completed" and final.worker == b.worker_id and final.error is None
+        with db.session() as s:
+            chunks = s.execute(select(FrameChunk.first_index, FrameChunk.count).where(FrameChunk.run_id == run_id)
+                               .order_by(FrameChunk.first_index)).all()
+            kinds = [e.kind for e in s.scalars(select(Event).where(Event.run_id == run_id))]
+        expected = 0
+        for first_index, count in chunks:                     # every index exactly once
+            assert first_index == expected
+            expected += count
+        assert expected > 0 and "worker_takeover" in kinds and "run_failed" not in kinds
+    finally:
+        freezer.thaw.set()
+        a.stop()
+        if b is not None:
+            b.stop()
+        a_thread.join(30)
+        if b is not None:
+            b_thread.join(30)
+
+
+def _run(db, run_id):
+    with db.session() as s:
+        run = queries.get_run(s, run_id)
+        s.expunge(run)
+        return run
