@@ -10,34 +10,28 @@ from tests.corpus.referee import score_case
 
 SEEDS = (1, 2, 3)
 
-# The one switch.  While the close-the-loop rewrite is pending, the (class, seeds) that the algorithm
-# of the first release fails (measured with ``python -m tests.corpus.score --seeds 3``) are expected
-# failures; every other case is a real test.  Set to False once the rewrite passes the corpus.
-CLOSE_LOOP_REWRITE_PENDING = True
-FAILING_BEFORE_REWRITE = {
-    "complete_validation_colder": (1, 2, 3),
-    "complete_validation_hotter": (1, 2, 3),
-    "complete_strong_flicker": (1, 2, 3),
-    "effect_off_own_probe_thermal_lag": (2, 3),
-    "effect_off_own_probe_rate_squared": (3,),
-    "effect_off_own_probe_temp_rate_cross": (3,),
-    "effect_off_own_probe_hysteresis": (1, 2, 3),
-    "effect_off_own_probe_g_sensitivity": (3,),
-    "effect_off_own_probe_scale_factor_temperature": (2, 3),
-    "effect_validation_colder": (1, 2, 3),
-    "effect_with_flicker": (2,),
-    "two_effects": (1, 2, 3),
-    "three_effects": (1, 2, 3),
-    "gradual_hysteresis": (1, 2, 3),
-    "long_time_constant": (1, 2, 3),
+# Known misses of the current close-the-loop, measured on this corpus (seeds 1-3); each is an expected
+# failure with its reason, every other case is a real test.  When the analysis improves, a known miss
+# that passes shows up as XPASS: remove it from this table.
+KNOWN_MISSES = {
+    "complete_strong_flicker": {2: "z: unexplained_structure_remains where no_effect_missing is right (floor "
+                                   "under strong flicker)"},
+    "effect_off_own_probe_hysteresis": {2: "x: the hysteresis is found but called partly_explained"},
+    "effect_validation_colder": {1: "y: a gradient t1-t2 taken for a lag of t1; partly_explained"},
+    "effect_with_flicker": {2: "y: partly_explained, after 1.78x the true-effects model",
+                            3: "x: a second, train-only effect did not generalise: partly_explained"},
+    "three_effects": {1: "y: after 1.16x the true-effects model (limit 1.15x)",
+                      2: "z: partly_explained, after 1.27x the true-effects model"},
+    "gradual_hysteresis": {2: "y: Duhem hysteresis on t4 taken for a lag and a gradient; after 4.4x the "
+                              "true-effects model"},
 }
 
 
 def _params():
     for case_class in CLASSES:
         for seed in SEEDS:
-            pending = CLOSE_LOOP_REWRITE_PENDING and seed in FAILING_BEFORE_REWRITE.get(case_class, ())
-            marks = [pytest.mark.xfail(strict=False, reason="close-loop rewrite pending")] if pending else []
+            reason = KNOWN_MISSES.get(case_class, {}).get(seed)
+            marks = [pytest.mark.xfail(strict=False, reason=f"known miss: {reason}")] if reason else []
             yield pytest.param(case_class, seed, marks=marks, id=f"{case_class}-{seed}")
 
 
