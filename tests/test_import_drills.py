@@ -208,3 +208,57 @@ def test_missing_latitude_with_known_orientation_fits_with_a_warning(tmp_path):
     res = fit_model("static", ds, "x")
     assert res.definition["earth_rate"]["earth_rate_removed"] is True
     assert "100 of 600 rows have no orientation" in res.definition["earth_rate"]["warning"]
+
+
+def test_killed_import_leaves_a_staging_run_the_next_import_removes(tmp_path):
+    """kill -9 while storing: the staging run (``live.import == "storing"``, host and pid) stays until the
+    next import on this host, which deletes it with every row; then only the finished import remains."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    url = f"sqlite:///{tmp_path / 'kill.sqlite'}"
+    db = open_database(url)
+    big = _csv(tmp_path / "big.csv", n=3000)
+    hold = tmp_path / "held"
+    # the child imports with a FrameWriter whose 2nd flush parks until the test kills it: the kill is
+    # known to land while storing, whatever the machine's load
+    child = subprocess.Popen([sys.executable, "-c", f"""
+import pathlib, time
+from bench.storage import frames, open_database
+from bench.commands.importing import import_csv
+real, n = frames.FrameWriter.flush, [0]
+def parked(self, *a, **k):
+    n[0] += 1
+    if n[0] == 2:
+        pathlib.Path({str(hold)!r}).write_text("storing")
+        while True:
+            time.sleep(0.05)
+    return real(self, *a, **k)
+frames.FrameWriter.flush = parked
+import_csv(open_database({url!r}), {str(big)!r}, "G1", block_bytes=4096)
+"""], cwd=os.getcwd())
+    try:
+        for _ in range(1200):                       # bounded: at most 60 s for the child to reach the park
+            if hold.exists() or child.poll() is not None:
+                break
+            time.sleep(0.05)
+        assert hold.exists(), "the child import never reached its second batch"
+        child.send_signal(signal.SIGKILL)
+        child.wait(timeout=30)
+    finally:
+        if child.poll() is None:
+            child.kill()
+    with db.session() as s:
+        staged = s.scalars(select(Run)).all()
+        assert [(r.procedure, r.status, (r.live or {}).get("import")) for r in staged] == [("import", "running", "storing")]
+        assert s.scalar(select(func.count()).select_from(FrameChunk)) > 0     # it had written rows
+    new_id = import_csv(db, _csv(tmp_path / "small.csv", n=300), "G2")
+    with db.session() as s:
+        runs = s.scalars(select(Run)).all()
+        assert [(r.id, r.status) for r in runs] == [(new_id, "completed")]
+        assert s.scalar(select(func.count()).select_from(FrameChunk).where(FrameChunk.run_id != new_id)) == 0
+        assert s.scalar(select(func.count()).select_from(ProbeReadingRow).where(ProbeReadingRow.run_id != new_id)) == 0
+    db.dispose()

@@ -10,6 +10,8 @@ All or nothing, in bounded memory:
    ``FrameWriter`` flushed synchronously after each batch (memory stays at one batch).
 3. **Publish** - the run is marked completed.  If storing fails (database error, Ctrl-C), the run and
    every row written for it are deleted (``ON DELETE CASCADE``), so a failed import leaves nothing.
+   A process killed while storing (kill -9) leaves its staging run (``live.import == "storing"`` with
+   its host and pid); the next import on that host deletes it (``sweep_abandoned_imports``).
 
 Each row becomes one gyro frame: KVH Format A (deg/h -> deg/s, float32 as on the wire), or the HRG
 frame when the file has ``freq_<ch>`` columns (frequencies as float64).  The bytes are an encoding of
@@ -19,6 +21,8 @@ on/off, and each stretch of constant ``orientation`` a ``record`` segment labell
 """
 from __future__ import annotations
 
+import os
+import socket
 from collections.abc import Callable, Iterable, Iterator
 import numpy as np
 
@@ -95,6 +99,35 @@ def _bench_config(db, bench_name: str | None):
     return GyroConfig(), None
 
 
+def sweep_abandoned_imports(db) -> list[int]:
+    """Delete the staging runs of imports whose process died (kill -9, power loss) on this host: an
+    import run still ``storing`` whose recorded pid is no longer alive.  Returns the run ids removed.
+    Every import calls it first, so a killed import leaves nothing behind for long."""
+    from sqlalchemy import select
+
+    from bench.storage.models import Run
+
+    removed = []
+    host = socket.gethostname()
+    with db.session() as s:
+        for run in s.scalars(select(Run).where(Run.procedure == "import", Run.status == "running")):
+            live = run.live or {}
+            if live.get("import") == "storing" and live.get("host") == host and not _alive(live.get("pid")):
+                removed.append(run.id)
+                s.delete(run)           # ON DELETE CASCADE: its frames, readings and segments too
+    return removed
+
+
+def _alive(pid) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except (TypeError, ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 def _import(db, src: _Source, gyro_id: str, *, source: str, bench_name: str | None, operator: str,
             progress) -> int:
     from bench.storage import queries
@@ -144,13 +177,14 @@ def _import(db, src: _Source, gyro_id: str, *, source: str, bench_name: str | No
     if mapping:
         snapshot["gyro"]["channel_probes"] = dict(mapping)
 
-    # 2. store
+    # 2. store (first removing what a killed import on this host left)
+    sweep_abandoned_imports(db)
     with db.session() as s:
         queries.ensure_gyro(s, gyro_id, type=meta.get("gyro_type"))
         run = queries.create_run(s, procedure="import", parameters={"source": source, "rows": n},
                                  config_snapshot=snapshot, operator=operator, gyro_id=gyro_id, bench_name=bench_name)
         run.status, run.started_at = "running", utcnow()
-        run.live = {"import": "storing"}
+        run.live = {"import": "storing", "host": socket.gethostname(), "pid": os.getpid()}
         run_id = run.id
     try:
         _store(db, run_id, src, kind, period, progress)
