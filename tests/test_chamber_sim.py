@@ -16,8 +16,9 @@ from pymodbus.framer import FramerType
 
 from bench.clock import SteppedClock
 from bench.errors import IllegalValue
-from bench.sim.chamber import (MODE_CONSTANT, MODE_HELD, MODE_RUNNING, STEP_END, STEP_RAMP_RATE,
-                               STEP_SOAK, ChamberModel, ChamberSimulator, ProfileStep)
+from bench.sim.chamber import ChamberSimulator
+from bench.sim.chamber_physics import (MODE_CONSTANT, MODE_HELD, MODE_RUNNING, STEP_END, STEP_RAMP_RATE,
+                                       STEP_SOAK, ChamberModel, ProfileStep)
 
 
 def crc16_modbus(data: bytes) -> int:
