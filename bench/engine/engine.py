@@ -36,12 +36,12 @@ temperature by the ramp step) and continues the interrupted step with its remain
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Protocol
 
 from bench.clock import Clock
 from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
+from bench.engine.context import HardwareState, StepContext
 from bench.engine.control import COMMANDS, Control, NoControl
 from bench.engine.devices import Devices
 from bench.engine.executors import EXECUTORS, StepExecutor, StepFailed
@@ -64,25 +64,6 @@ class BenchState(Protocol):
     def restore(self, snap: dict[str, Any]) -> float: ...
 CHECKPOINT_VERSION = 1
 MIN_SLEEP_S = 1e-3
-
-
-@dataclass
-class HardwareState:
-    """What the engine last commanded (restored on resume)."""
-
-    chamber_setpoint_c: float | None = None
-    chamber_ramp: dict[str, float] | None = None
-    orientation: str | None = None
-    table_angles: list[float] | None = None
-    table_rates: dict[str, float] = field(default_factory=dict)
-    gyro_power: bool | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> "HardwareState":
-        return cls(**data)
 
 
 class RunEnded(Exception):
@@ -290,7 +271,7 @@ class Engine:
         assert self.plan is not None
         step = self.plan.steps[index]
         now = self.clock.now()
-        ex = EXECUTORS[step.kind](self, index, step, self.estimates[index], state)
+        ex = EXECUTORS[step.kind](self._step_context(), index, step, self.estimates[index], state)
         self.current, self.current_index = ex, index
         self.store.set_step_status(self.run_id, index, step.kind, StepOutcome.RUNNING, now,
                                    {"describe": step.describe(), "resumed": state is not None})
@@ -322,6 +303,21 @@ class Engine:
         self.current = None
         self.acq.flush(now)
         self._checkpoint(now, index + 1, None)
+
+    def _step_context(self) -> StepContext:
+        """What a step may see and do (``bench.engine.context``), bound to this run."""
+        run_id, store, fit_hook = self.run_id, self.store, self.fit_hook
+        return StepContext(
+            devices=self.devices, config=self.config, engine_config=self.cfg, hw=self.hw,
+            readings=self.acq, log=self.log,
+            record_segment=lambda index, kind, t_from, t_to, labels: store.add_segment(
+                run_id, index, kind, t_from, t_to, labels),
+            save_fit=lambda index, result: store.save_fit(run_id, index, result),
+            gyro_powered=self._gyro_powered,
+            fit=None if fit_hook is None else (lambda index, step: fit_hook(run_id, index, step, store)))
+
+    def _gyro_powered(self, now: float, on: bool) -> None:
+        self.powered_since = now if on else None
 
     def _sleep(self, now: float, ex: StepExecutor) -> None:
         fine = ex.fine or ex.held
