@@ -13,9 +13,9 @@ Control: ``stop`` (status "stopping") finishes the current recording step (stops
 other step, or when paused / suspended), then safe state, final status "stopped"; ``abort`` goes to
 safe state now ("aborted"); ``pause``/``resume``.  Errors end the run as "failed" (safe state too).
 
-Suspension: any condition from ``Acquisition.conditions`` suspends the run (the step's clock stops,
-a ramp is held, the recording piece ends); once every condition has been clear for ``settle_s``
-the run resumes.  Total suspension above ``suspension_cap_s`` aborts to safe state.
+Suspension: any condition from ``Acquisition.conditions`` (its suspenders, ``bench.engine.suspenders``)
+suspends the run (the step's clock stops, a ramp is held, the recording piece ends); once every
+condition has been clear for ``settle_s`` the run resumes (the state: ``suspenders.Suspension``).  Total suspension above ``suspension_cap_s`` aborts to safe state.
 
 Checkpoint (``RunStore.save_checkpoint``) after each step and every ``checkpoint_period_s``::
 
@@ -52,6 +52,7 @@ from bench.engine.planning import plan_summary, step_estimates, validate_plan
 from bench.engine.safe import enter_safe_state, move_table_and_wait
 from bench.engine.steps import Fit, Plan, Ramp
 from bench.engine.store import RunStore
+from bench.engine.suspenders import Suspension
 from bench.errors import BenchError, DeviceError
 
 FitHook = Callable[[str, int, Fit, RunStore], dict[str, Any]]
@@ -97,7 +98,7 @@ class Engine:
         self.powered_since: float | None = None
         self.paused = False
         self.stop_requested = False
-        self.suspension: dict[str, Any] | None = None   # {"id", "t_from", "reason", "clear_since"}
+        self.suspension: Suspension | None = None
         self.suspended_closed_s = 0.0
         self.started_t = 0.0
         self.next_checkpoint = 0.0
@@ -360,47 +361,46 @@ class Engine:
             if not conditions:
                 return
             reason = "; ".join(conditions.values())
-            sid = self.store.open_suspension(self.run_id, now, reason)
-            self.suspension = {"id": sid, "t_from": now, "reason": reason, "clear_since": None,
-                               "keys": set(conditions)}
+            self.suspension = Suspension.opened(self.store.open_suspension(self.run_id, now, reason), now, conditions)
             self.log("warning", "suspended", f"run suspended: {reason}")
             if not self.paused:
                 self._status("suspended", now, reason)
         elif conditions:
-            keys = susp.setdefault("keys", set())
-            for key, text in conditions.items():
-                if key not in keys:          # a new kind of condition; a changing text is the same one
-                    keys.add(key)
-                    susp["reason"] += "; " + text
-                    self.log("warning", "suspension_reason", f"also: {text}")
-            if susp["clear_since"] is not None:
+            for text in susp.add(conditions):
+                self.log("warning", "suspension_reason", f"also: {text}")
+            if susp.clear_since is not None:
                 self.log("warning", "suspension_recurred", "condition came back while settling")
-            susp["clear_since"] = None
-        elif susp["clear_since"] is None:
-            susp["clear_since"] = now
+            susp.clear_since = None
+        elif susp.clear_since is None:
+            susp.clear_since = now
             self.log("info", "conditions_cleared", f"conditions cleared; settling {self.cfg.settle_s:g} s")
-        elif now - susp["clear_since"] >= self.cfg.settle_s:
-            self.store.close_suspension(self.run_id, susp["id"], now, susp["reason"])
-            self.suspended_closed_s += now - susp["t_from"]
-            self.suspension = None
-            self.log("info", "unsuspended", f"run resumed after {now - susp['t_from']:.0f} s suspended")
+        elif now - susp.clear_since >= self.cfg.settle_s:
+            self._close_suspension(now)
+            self.log("info", "unsuspended", f"run resumed after {now - susp.t_from:.0f} s suspended")
             if not self.paused:
                 self._status("running", now)
             return
         total = self.suspended_total(now)
         if total > self.cfg.suspension_cap_s:
+            assert self.suspension is not None
             raise RunEnded(RunOutcome.ABORTED, f"suspended for a total of {total:.0f} s, over the cap of "
-                                      f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension['reason']}")
+                                      f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension.reason}")
+
+    def _close_suspension(self, now: float) -> None:
+        susp = self.suspension
+        if susp is not None:
+            self.store.close_suspension(self.run_id, susp.id, now, susp.reason)
+            self.suspended_closed_s += now - susp.t_from
+            self.suspension = None
 
     def suspended_total(self, now: float) -> float:
-        current = now - self.suspension["t_from"] if self.suspension else 0.0
+        current = now - self.suspension.t_from if self.suspension else 0.0
         return self.suspended_closed_s + current
 
     # ---- checkpoint / end ---------------------------------------------------------------------
     def _checkpoint(self, now: float, index: int, step_state: dict[str, Any] | None,
                     finished: str | None = None) -> None:
         self.acq.flush(now)
-        susp = self.suspension
         self.store.save_checkpoint(self.run_id, {
             "version": CHECKPOINT_VERSION,
             "step_index": index,
@@ -409,8 +409,7 @@ class Engine:
             "t": now,
             "started_t": self.started_t,
             "suspended_total_s": self.suspended_total(now),
-            "open_suspension": ({"id": susp["id"], "t_from": susp["t_from"], "reason": susp["reason"]}
-                                if susp else None),
+            "open_suspension": self.suspension.checkpoint() if self.suspension else None,
             "stop_requested": self.stop_requested,
             "progress": self.progress(now),
             "finished": finished,
@@ -427,10 +426,7 @@ class Engine:
             self.store.set_step_status(self.run_id, ex.index, ex.step.kind, StepOutcome.ending_run(status),
                                        now, {"reason": reason})
             self.current = None
-        if self.suspension is not None:
-            self.store.close_suspension(self.run_id, self.suspension["id"], now, self.suspension["reason"])
-            self.suspended_closed_s += now - self.suspension["t_from"]
-            self.suspension = None
+        self._close_suspension(now)
         try:
             self.acq.flush(now)
         except Exception as exc:  # noqa: BLE001 - still reach the safe state
