@@ -74,6 +74,9 @@ from bench.clock import Clock
 from bench.errors import IllegalValue
 from bench.sim.chamber_physics import (END_HOLD, STEP_END, STEP_RAMP_RATE, STEP_RAMP_TIME, STEP_SOAK, ChamberModel,
                                       ProfileStep)
+# Simulated-bench snapshots pickle the model's profile objects by module: these names keep the
+# snapshots taken while the model lived here restorable.
+from bench.sim.chamber_physics import _RunningProfile  # noqa: F401
 
 
 # --------------------------------------------------------------------------------------------
