@@ -114,6 +114,31 @@ class GyroLimits(_Strict):
     max_c: float = 70.0
 
 
+class SuspendRule(_Strict):
+    """An extra condition that suspends a run (``bench.engine.suspenders``): ``signal`` below
+    ``below`` (a floor) or above ``above`` (a ceiling), exactly one of them; the run may resume once
+    the value is back at ``resume_at`` (default: the threshold).  Signals: ``chamber_pv_c``,
+    ``psu_volts``, ``psu_amps``, ``probe:<name>``."""
+
+    signal: str = Field(pattern=r"^(chamber_pv_c|psu_volts|psu_amps|probe:.+)$")
+    below: float | None = None
+    above: float | None = None
+    resume_at: float | None = None
+
+    @model_validator(mode="after")
+    def _check_threshold(self) -> "SuspendRule":
+        if (self.below is None) == (self.above is None):
+            raise ValueError(f"suspend rule on {self.signal}: give exactly one of below / above")
+        if self.resume_at is not None:
+            if self.below is not None and self.resume_at < self.below:
+                raise ValueError(f"suspend rule on {self.signal}: resume_at {self.resume_at:g} is below "
+                                 f"the floor {self.below:g}")
+            if self.above is not None and self.resume_at > self.above:
+                raise ValueError(f"suspend rule on {self.signal}: resume_at {self.resume_at:g} is above "
+                                 f"the ceiling {self.above:g}")
+        return self
+
+
 class BenchConfig(_Strict):
     name: str = "bench1"
     latitude_deg: float = Field(45.75, ge=-90, le=90)
@@ -124,6 +149,7 @@ class BenchConfig(_Strict):
     psu: PsuConfig = PsuConfig()
     safe_state: SafeStateConfig = SafeStateConfig()
     gyro_limits: GyroLimits = GyroLimits()
+    suspend: list[SuspendRule] = Field(default_factory=list)   # added to the bench's own suspend conditions
 
     @model_validator(mode="after")
     def _check_channel_probes(self) -> "BenchConfig":
@@ -134,6 +160,11 @@ class BenchConfig(_Strict):
             if probe not in self.probes.probes:
                 raise ValueError(f"gyro.channel_probes.{ch}: {probe!r} is not a configured probe (probes.probes: "
                                  f"{', '.join(sorted(self.probes.probes)) or 'none'})")
+        for k, rule in enumerate(self.suspend):
+            name = rule.signal.removeprefix("probe:")
+            if rule.signal.startswith("probe:") and self.probes.probes and name not in self.probes.probes:
+                raise ValueError(f"suspend.{k}.signal: {name!r} is not a configured probe (probes.probes: "
+                                 f"{', '.join(sorted(self.probes.probes))})")
         return self
 
     @classmethod

@@ -11,7 +11,8 @@ from bench.devices.chamber import WatlowF4Chamber
 from bench.errors import (DeviceTimeout, IllegalAddress, IllegalValue, LinkDown, ModbusException, PlanError,
                           SensorFault)
 from bench.interfaces import Chamber
-from bench.sim.chamber import ChamberModel, ChamberSimulator
+from bench.sim.chamber import ChamberSimulator
+from bench.sim.chamber_physics import ChamberModel
 
 
 @pytest.fixture

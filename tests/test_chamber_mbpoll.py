@@ -14,7 +14,8 @@ import time
 import pytest
 
 from bench.clock import SteppedClock
-from bench.sim.chamber import ChamberModel, ChamberSimulator
+from bench.sim.chamber import ChamberSimulator
+from bench.sim.chamber_physics import ChamberModel
 
 pytestmark = pytest.mark.skipif(shutil.which("mbpoll") is None or shutil.which("socat") is None,
                                 reason="needs Debian mbpoll and socat")

@@ -16,8 +16,9 @@ from pymodbus.framer import FramerType
 
 from bench.clock import SteppedClock
 from bench.errors import IllegalValue
-from bench.sim.chamber import (MODE_CONSTANT, MODE_HELD, MODE_RUNNING, STEP_END, STEP_RAMP_RATE,
-                               STEP_SOAK, ChamberModel, ChamberSimulator, ProfileStep)
+from bench.sim.chamber import ChamberSimulator
+from bench.sim.chamber_physics import (MODE_CONSTANT, MODE_HELD, MODE_RUNNING, STEP_END, STEP_RAMP_RATE,
+                                       STEP_SOAK, ChamberModel, ProfileStep)
 
 
 def crc16_modbus(data: bytes) -> int:
@@ -319,3 +320,23 @@ def test_fahrenheit_and_two_decimals_encoding(clock):
     assert simulator.read_register(606) == 2 and simulator.read_register(901) == 0
     simulator.registers.write(300, 21200)                        # 212.00 F = 100 C
     assert simulator.model.setpoint_c == pytest.approx(100.0)
+
+
+def test_a_snapshot_taken_while_the_model_lived_in_chamber_py_still_restores():
+    """Simulated-bench checkpoints pickle the chamber model's state; the profile objects in it were
+    named ``bench.sim.chamber.*`` before the physics moved to ``bench.sim.chamber_physics``."""
+    import pickle
+
+    model = ChamberModel(air_c=25.0, control_tau_s=30.0)
+    model.advance_to(0.0)
+    model.start_profile(1, [ProfileStep(STEP_RAMP_RATE, target_c=45.0, rate_c_per_min=2.0),
+                            ProfileStep(STEP_END)])
+    model.advance_to(300.0)
+    state = {k: v for k, v in vars(model).items() if k != "_lock"}
+    old = pickle.dumps(state, protocol=0).replace(b"bench.sim.chamber_physics\n", b"bench.sim.chamber\n")
+    assert b"cbench.sim.chamber\n_RunningProfile" in old
+    fresh = ChamberModel(air_c=25.0, control_tau_s=30.0)
+    vars(fresh).update(pickle.loads(old))
+    fresh.advance_to(600.0)
+    model.advance_to(600.0)
+    assert (fresh.air_c, fresh.ramp_setpoint_c, fresh.mode) == (model.air_c, model.ramp_setpoint_c, model.mode)

@@ -13,9 +13,9 @@ Control: ``stop`` (status "stopping") finishes the current recording step (stops
 other step, or when paused / suspended), then safe state, final status "stopped"; ``abort`` goes to
 safe state now ("aborted"); ``pause``/``resume``.  Errors end the run as "failed" (safe state too).
 
-Suspension: any condition from ``Acquisition.conditions`` suspends the run (the step's clock stops,
-a ramp is held, the recording piece ends); once every condition has been clear for ``settle_s``
-the run resumes.  Total suspension above ``suspension_cap_s`` aborts to safe state.
+Suspension: any condition from ``Acquisition.conditions`` (its suspenders, ``bench.engine.suspenders``)
+suspends the run (the step's clock stops, a ramp is held, the recording piece ends); once every
+condition has been clear for ``settle_s`` the run resumes (the state: ``suspenders.Suspension``).  Total suspension above ``suspension_cap_s`` aborts to safe state.
 
 Checkpoint (``RunStore.save_checkpoint``) after each step and every ``checkpoint_period_s``::
 
@@ -36,12 +36,12 @@ temperature by the ramp step) and continues the interrupted step with its remain
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
 from typing import Any, Callable, Protocol
 
 from bench.clock import Clock
 from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
+from bench.engine.context import HardwareState, StepContext
 from bench.engine.control import COMMANDS, Control, NoControl
 from bench.engine.devices import Devices
 from bench.engine.executors import EXECUTORS, StepExecutor, StepFailed
@@ -52,6 +52,7 @@ from bench.engine.planning import plan_summary, step_estimates, validate_plan
 from bench.engine.safe import enter_safe_state, move_table_and_wait
 from bench.engine.steps import Fit, Plan, Ramp
 from bench.engine.store import RunStore
+from bench.engine.suspenders import Suspension
 from bench.errors import BenchError, DeviceError
 
 FitHook = Callable[[str, int, Fit, RunStore], dict[str, Any]]
@@ -64,25 +65,6 @@ class BenchState(Protocol):
     def restore(self, snap: dict[str, Any]) -> float: ...
 CHECKPOINT_VERSION = 1
 MIN_SLEEP_S = 1e-3
-
-
-@dataclass
-class HardwareState:
-    """What the engine last commanded (restored on resume)."""
-
-    chamber_setpoint_c: float | None = None
-    chamber_ramp: dict[str, float] | None = None
-    orientation: str | None = None
-    table_angles: list[float] | None = None
-    table_rates: dict[str, float] = field(default_factory=dict)
-    gyro_power: bool | None = None
-
-    def to_json(self) -> dict[str, Any]:
-        return asdict(self)
-
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> "HardwareState":
-        return cls(**data)
 
 
 class RunEnded(Exception):
@@ -116,7 +98,7 @@ class Engine:
         self.powered_since: float | None = None
         self.paused = False
         self.stop_requested = False
-        self.suspension: dict[str, Any] | None = None   # {"id", "t_from", "reason", "clear_since"}
+        self.suspension: Suspension | None = None
         self.suspended_closed_s = 0.0
         self.started_t = 0.0
         self.next_checkpoint = 0.0
@@ -290,7 +272,7 @@ class Engine:
         assert self.plan is not None
         step = self.plan.steps[index]
         now = self.clock.now()
-        ex = EXECUTORS[step.kind](self, index, step, self.estimates[index], state)
+        ex = EXECUTORS[step.kind](self._step_context(), index, step, self.estimates[index], state)
         self.current, self.current_index = ex, index
         self.store.set_step_status(self.run_id, index, step.kind, StepOutcome.RUNNING, now,
                                    {"describe": step.describe(), "resumed": state is not None})
@@ -322,6 +304,21 @@ class Engine:
         self.current = None
         self.acq.flush(now)
         self._checkpoint(now, index + 1, None)
+
+    def _step_context(self) -> StepContext:
+        """What a step may see and do (``bench.engine.context``), bound to this run."""
+        run_id, store, fit_hook = self.run_id, self.store, self.fit_hook
+        return StepContext(
+            devices=self.devices, config=self.config, engine_config=self.cfg, hw=self.hw,
+            readings=self.acq, log=self.log,
+            record_segment=lambda index, kind, t_from, t_to, labels: store.add_segment(
+                run_id, index, kind, t_from, t_to, labels),
+            save_fit=lambda index, result: store.save_fit(run_id, index, result),
+            gyro_powered=self._gyro_powered,
+            fit=None if fit_hook is None else (lambda index, step: fit_hook(run_id, index, step, store)))
+
+    def _gyro_powered(self, now: float, on: bool) -> None:
+        self.powered_since = now if on else None
 
     def _sleep(self, now: float, ex: StepExecutor) -> None:
         fine = ex.fine or ex.held
@@ -364,47 +361,46 @@ class Engine:
             if not conditions:
                 return
             reason = "; ".join(conditions.values())
-            sid = self.store.open_suspension(self.run_id, now, reason)
-            self.suspension = {"id": sid, "t_from": now, "reason": reason, "clear_since": None,
-                               "keys": set(conditions)}
+            self.suspension = Suspension.opened(self.store.open_suspension(self.run_id, now, reason), now, conditions)
             self.log("warning", "suspended", f"run suspended: {reason}")
             if not self.paused:
                 self._status("suspended", now, reason)
         elif conditions:
-            keys = susp.setdefault("keys", set())
-            for key, text in conditions.items():
-                if key not in keys:          # a new kind of condition; a changing text is the same one
-                    keys.add(key)
-                    susp["reason"] += "; " + text
-                    self.log("warning", "suspension_reason", f"also: {text}")
-            if susp["clear_since"] is not None:
+            for text in susp.add(conditions):
+                self.log("warning", "suspension_reason", f"also: {text}")
+            if susp.clear_since is not None:
                 self.log("warning", "suspension_recurred", "condition came back while settling")
-            susp["clear_since"] = None
-        elif susp["clear_since"] is None:
-            susp["clear_since"] = now
+            susp.clear_since = None
+        elif susp.clear_since is None:
+            susp.clear_since = now
             self.log("info", "conditions_cleared", f"conditions cleared; settling {self.cfg.settle_s:g} s")
-        elif now - susp["clear_since"] >= self.cfg.settle_s:
-            self.store.close_suspension(self.run_id, susp["id"], now, susp["reason"])
-            self.suspended_closed_s += now - susp["t_from"]
-            self.suspension = None
-            self.log("info", "unsuspended", f"run resumed after {now - susp['t_from']:.0f} s suspended")
+        elif now - susp.clear_since >= self.cfg.settle_s:
+            self._close_suspension(now)
+            self.log("info", "unsuspended", f"run resumed after {now - susp.t_from:.0f} s suspended")
             if not self.paused:
                 self._status("running", now)
             return
         total = self.suspended_total(now)
         if total > self.cfg.suspension_cap_s:
+            assert self.suspension is not None
             raise RunEnded(RunOutcome.ABORTED, f"suspended for a total of {total:.0f} s, over the cap of "
-                                      f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension['reason']}")
+                                      f"{self.cfg.suspension_cap_s:g} s; last reason: {self.suspension.reason}")
+
+    def _close_suspension(self, now: float) -> None:
+        susp = self.suspension
+        if susp is not None:
+            self.store.close_suspension(self.run_id, susp.id, now, susp.reason)
+            self.suspended_closed_s += now - susp.t_from
+            self.suspension = None
 
     def suspended_total(self, now: float) -> float:
-        current = now - self.suspension["t_from"] if self.suspension else 0.0
+        current = now - self.suspension.t_from if self.suspension else 0.0
         return self.suspended_closed_s + current
 
     # ---- checkpoint / end ---------------------------------------------------------------------
     def _checkpoint(self, now: float, index: int, step_state: dict[str, Any] | None,
                     finished: str | None = None) -> None:
         self.acq.flush(now)
-        susp = self.suspension
         self.store.save_checkpoint(self.run_id, {
             "version": CHECKPOINT_VERSION,
             "step_index": index,
@@ -413,8 +409,7 @@ class Engine:
             "t": now,
             "started_t": self.started_t,
             "suspended_total_s": self.suspended_total(now),
-            "open_suspension": ({"id": susp["id"], "t_from": susp["t_from"], "reason": susp["reason"]}
-                                if susp else None),
+            "open_suspension": self.suspension.checkpoint() if self.suspension else None,
             "stop_requested": self.stop_requested,
             "progress": self.progress(now),
             "finished": finished,
@@ -431,10 +426,7 @@ class Engine:
             self.store.set_step_status(self.run_id, ex.index, ex.step.kind, StepOutcome.ending_run(status),
                                        now, {"reason": reason})
             self.current = None
-        if self.suspension is not None:
-            self.store.close_suspension(self.run_id, self.suspension["id"], now, self.suspension["reason"])
-            self.suspended_closed_s += now - self.suspension["t_from"]
-            self.suspension = None
+        self._close_suspension(now)
         try:
             self.acq.flush(now)
         except Exception as exc:  # noqa: BLE001 - still reach the safe state

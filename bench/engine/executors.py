@@ -1,23 +1,22 @@
 """One executor per step kind: issue the step's commands, advance with *active* bench time (time
 that is neither paused nor suspended), say when the step is done, and give/take the state a
-checkpoint needs to continue the step after a crash.
+checkpoint needs to continue the step after a crash.  An executor sees only its ``StepContext``
+(``bench.engine.context``), never the engine.
 
 Recording steps label their active time as segments: each uninterrupted stretch is a "piece"
-(pause, suspension and crash each end a piece); ``finish`` writes one segment per piece with the
-step's labels plus ``piece`` and ``complete``.
+(pause, suspension and crash each end a piece); ``finish`` hands one segment per piece, with the
+step's labels plus ``piece`` and ``complete``, to ``StepContext.record_segment``.
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from bench.engine.context import StepContext
 from bench.engine.orientation import solve_angles
 from bench.engine.safe import angle_error, command_table_move
 from bench.engine.steps import (Fit, GyroPower, Orient, Ramp, Record, SetChamber, Soak, TableRate,
                                 WaitStable, step_labels)
 from bench.errors import BenchError, DeviceError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from bench.engine.engine import Engine
 
 
 class StepFailed(BenchError):
@@ -27,9 +26,9 @@ class StepFailed(BenchError):
 class StepExecutor:
     fine = True   # wants the fine loop tick
 
-    def __init__(self, eng: "Engine", index: int, step: Any, estimate_s: float,
+    def __init__(self, ctx: StepContext, index: int, step: Any, estimate_s: float,
                  state: dict[str, Any] | None) -> None:
-        self.eng = eng
+        self.ctx = ctx
         self.index = index
         self.step = step
         self.estimate_s = estimate_s
@@ -77,8 +76,8 @@ class StepExecutor:
         if self.labels is None:
             return
         for k, (t_from, t_to) in enumerate(self.pieces):
-            self.eng.store.add_segment(self.eng.run_id, self.index, self.step.kind, t_from, t_to,
-                                       {**self.labels, "piece": k, "complete": complete})
+            self.ctx.record_segment(self.index, self.step.kind, t_from, t_to,
+                                    {**self.labels, "piece": k, "complete": complete})
 
     def state(self, now: float) -> dict[str, Any]:
         pieces = [list(p) for p in self.pieces]
@@ -113,11 +112,11 @@ class SetChamberExec(StepExecutor):
     step: SetChamber
 
     def begin(self, now: float) -> None:
-        hw = self.eng.hw
+        hw = self.ctx.hw
         if hw.chamber_ramp is not None:
-            self.eng.devices.chamber.stop()
+            self.ctx.devices.chamber.stop()
             hw.chamber_ramp = None
-        self.eng.devices.chamber.set_setpoint(self.step.setpoint_c)
+        self.ctx.devices.chamber.set_setpoint(self.step.setpoint_c)
         hw.chamber_setpoint_c = self.step.setpoint_c
 
 
@@ -147,31 +146,31 @@ class RampExec(StepExecutor):
     step: Ramp
 
     def begin(self, now: float) -> None:
-        eng, step = self.eng, self.step
-        chamber = eng.devices.chamber
+        ctx, step = self.ctx, self.step
+        chamber = ctx.devices.chamber
         self.phase = self.saved.get("phase", "ramp")
         self.until_elapsed = float(self.saved.get("until_elapsed_s", 0.0))
         if self.phase == "ramp":
             if self.resumed:
                 start = chamber.read_temperature()
                 chamber.set_setpoint(start)
-                eng.log("info", "ramp_reissued", f"ramp re-issued from the current chamber temperature "
+                ctx.log("info", "ramp_reissued", f"ramp re-issued from the current chamber temperature "
                         f"{start:.2f} C to {step.target_c:g} C at {step.rate_c_per_min:g} C/min",
                         from_c=start, target_c=step.target_c)
                 self.elapsed = 0.0
             else:
-                start = (eng.hw.chamber_setpoint_c if eng.hw.chamber_setpoint_c is not None
+                start = (ctx.hw.chamber_setpoint_c if ctx.hw.chamber_setpoint_c is not None
                          else chamber.read_setpoint())
             chamber.ramp_to(step.target_c, step.rate_c_per_min)
             self.start_c = float(start)
             self.planned_s = abs(step.target_c - start) / step.rate_c_per_min * 60.0
-            eng.hw.chamber_ramp = {"target_c": step.target_c, "rate_c_per_min": step.rate_c_per_min}
+            ctx.hw.chamber_ramp = {"target_c": step.target_c, "rate_c_per_min": step.rate_c_per_min}
         else:   # resumed in the until-phase: the ramp itself is over
             self.start_c = float(self.saved.get("start_c", step.target_c))
             self.planned_s = float(self.saved.get("planned_s", 0.0))
             chamber.set_setpoint(step.target_c)
-            eng.hw.chamber_ramp = None
-            eng.hw.chamber_setpoint_c = step.target_c
+            ctx.hw.chamber_ramp = None
+            ctx.hw.chamber_setpoint_c = step.target_c
         self.rising = step.target_c >= self.start_c
 
     def extra_state(self) -> dict[str, Any]:
@@ -179,35 +178,35 @@ class RampExec(StepExecutor):
                 "planned_s": self.planned_s}
 
     def update(self, now: float, dt: float) -> bool:
-        eng, step, cfg = self.eng, self.step, self.eng.cfg
+        ctx, step, cfg = self.ctx, self.step, self.ctx.engine_config
         if self.phase == "ramp":
             self.elapsed += dt
             if self.elapsed < self.planned_s:
                 return False
-            status = eng.acq.read_chamber(now)
+            status = ctx.readings.read_chamber(now)
             ramp_sp = status.ramp_setpoint_c if status is not None else None
             reached = status is not None and (ramp_sp is None or abs(ramp_sp - step.target_c) <= cfg.ramp_done_tol_c)
             late = self.elapsed >= self.planned_s * 1.1 + cfg.ramp_grace_s
             if not (reached or late):
                 return False
             if not reached:
-                eng.log("warning", "ramp_late", f"chamber ramp set point {ramp_sp} C had not reached "
+                ctx.log("warning", "ramp_late", f"chamber ramp set point {ramp_sp} C had not reached "
                         f"{step.target_c:g} C {self.elapsed - self.planned_s:.0f} s after the planned end; going on")
-            eng.hw.chamber_ramp = None
-            eng.hw.chamber_setpoint_c = step.target_c
+            ctx.hw.chamber_ramp = None
+            ctx.hw.chamber_setpoint_c = step.target_c
             if step.until_probes_c is None:
                 return True
             self.phase = "until"
             return False
         self.until_elapsed += dt
-        values = eng.acq.latest_probes()
+        values = ctx.readings.latest_probes()
         if values and all(v is not None for v in values.values()):
             goal, tol = step.until_probes_c, step.probe_tol_c
             if all((v >= goal - tol) if self.rising else (v <= goal + tol) for v in values.values()):
-                eng.log("info", "probes_reached", f"every probe reached {goal:g} C", probes=values)
+                ctx.log("info", "probes_reached", f"every probe reached {goal:g} C", probes=values)
                 return True
         if self.until_elapsed >= step.until_timeout_s:
-            eng.log("warning", "probes_not_reached", f"probes did not all reach {step.until_probes_c:g} C "
+            ctx.log("warning", "probes_not_reached", f"probes did not all reach {step.until_probes_c:g} C "
                     f"within {step.until_timeout_s:g} s after the ramp; going on", probes=values)
             return True
         return False
@@ -221,15 +220,15 @@ class RampExec(StepExecutor):
     def on_hold(self, now: float) -> None:
         if self.phase == "ramp":
             try:
-                self.eng.devices.chamber.hold()
-                self.eng.log("info", "ramp_held", "chamber ramp held")
+                self.ctx.devices.chamber.hold()
+                self.ctx.log("info", "ramp_held", "chamber ramp held")
             except DeviceError as exc:
-                self.eng.log("error", "ramp_hold_failed", f"could not hold the chamber ramp: {exc}")
+                self.ctx.log("error", "ramp_hold_failed", f"could not hold the chamber ramp: {exc}")
 
     def on_release(self, now: float) -> None:
         if self.phase == "ramp":
-            self.eng.devices.chamber.resume()
-            self.eng.log("info", "ramp_resumed", "chamber ramp resumed")
+            self.ctx.devices.chamber.resume()
+            self.ctx.log("info", "ramp_resumed", "chamber ramp resumed")
 
 
 class WaitStableExec(StepExecutor):
@@ -242,20 +241,20 @@ class WaitStableExec(StepExecutor):
 
     def _stable_now(self, now: float) -> bool:
         """Evaluated only when new probe or chamber data arrived since the last check."""
-        key = (self.eng.acq.probe_reads, self.eng.acq.status_t)
+        key = (self.ctx.readings.probe_reads, self.ctx.readings.status_t)
         if key != self._checked:
             self._checked = key
             self._last_ok = self._evaluate(now)
         return self._last_ok
 
     def _evaluate(self, now: float) -> bool:
-        eng, step = self.eng, self.step
-        sp = eng.hw.chamber_setpoint_c
-        status = eng.acq.status
+        step, hw, acq = self.step, self.ctx.hw, self.ctx.readings
+        sp = hw.chamber_setpoint_c
+        status = acq.status
         if sp is None or status is None or abs(status.pv_c - sp) > step.tol_c:
             return False
-        names = eng.acq.probe_names
-        latest = eng.acq.latest_probes()
+        names = acq.probe_names
+        latest = acq.latest_probes()
         if step.probe_tol_c is not None:
             if not names or any(latest.get(n) is None or abs(latest[n] - sp) > step.probe_tol_c for n in names):
                 return False
@@ -263,7 +262,7 @@ class WaitStableExec(StepExecutor):
             if not names:
                 return False
             for name in names:
-                rate = eng.acq.probe_rate_c_per_min(name, now, step.rate_window_s)
+                rate = acq.probe_rate_c_per_min(name, now, step.rate_window_s)
                 if rate is None or abs(rate) >= step.probe_rate_c_per_min:
                     return False
         return True
@@ -275,7 +274,7 @@ class WaitStableExec(StepExecutor):
             if self.stable_since is None:
                 self.stable_since = now
             if now - self.stable_since >= step.stable_s:
-                self.eng.log("info", "stable", f"stable for {step.stable_s:g} s after {self.elapsed:.0f} s")
+                self.ctx.log("info", "stable", f"stable for {step.stable_s:g} s after {self.elapsed:.0f} s")
                 return True
         else:
             self.stable_since = None
@@ -283,7 +282,7 @@ class WaitStableExec(StepExecutor):
             message = f"not stable within {step.timeout_s:g} s ({step.describe()})"
             if step.on_timeout == "abort":
                 raise StepFailed(f"step {self.index}: {message}")
-            self.eng.log("warning", "stable_timeout", message + "; going on")
+            self.ctx.log("warning", "stable_timeout", message + "; going on")
             return True
         return False
 
@@ -296,20 +295,20 @@ class OrientExec(StepExecutor):
     step: Orient
 
     def begin(self, now: float) -> None:
-        eng = self.eng
-        outer, inner = solve_angles(self.step.code, eng.config.turntable.geometry)
+        ctx = self.ctx
+        outer, inner = solve_angles(self.step.code, ctx.config.turntable.geometry)
         self.target = (float(outer), float(inner))
-        command_table_move(eng.devices, eng.config, *self.target)
-        eng.hw.orientation = self.step.code.upper()
-        eng.hw.table_angles = list(self.target)
-        eng.hw.table_rates = {}
+        command_table_move(ctx.devices, ctx.config, *self.target)
+        ctx.hw.orientation = self.step.code.upper()
+        ctx.hw.table_angles = list(self.target)
+        ctx.hw.table_rates = {}
 
     def update(self, now: float, dt: float) -> bool:
-        eng = self.eng
+        ctx = self.ctx
         self.elapsed += dt
-        geo, tol = eng.config.turntable.geometry, eng.config.turntable.position_tolerance_deg
-        a = eng.devices.turntable.read(geo.outer_axis_number)
-        b = eng.devices.turntable.read(geo.inner_axis_number)
+        geo, tol = ctx.config.turntable.geometry, ctx.config.turntable.position_tolerance_deg
+        a = ctx.devices.turntable.read(geo.outer_axis_number)
+        b = ctx.devices.turntable.read(geo.inner_axis_number)
         if (angle_error(a.position_deg, self.target[0]) <= tol and angle_error(b.position_deg, self.target[1]) <= tol
                 and abs(a.rate_dps) < 0.1 and abs(b.rate_dps) < 0.1):
             return True
@@ -324,44 +323,44 @@ class TableRateExec(StepExecutor):
     step: TableRate
 
     def begin(self, now: float) -> None:
-        eng = self.eng
-        geo = eng.config.turntable.geometry
+        ctx = self.ctx
+        geo = ctx.config.turntable.geometry
         axis = geo.outer_axis_number if self.step.axis == "outer" else geo.inner_axis_number
-        eng.devices.turntable.rate(axis, self.step.rate_dps)
-        eng.hw.orientation = None
-        eng.hw.table_rates[self.step.axis] = self.step.rate_dps
+        ctx.devices.turntable.rate(axis, self.step.rate_dps)
+        ctx.hw.orientation = None
+        ctx.hw.table_rates[self.step.axis] = self.step.rate_dps
 
 
 class GyroPowerExec(StepExecutor):
     step: GyroPower
 
     def begin(self, now: float) -> None:
-        eng, on = self.eng, self.step.on
-        eng.devices.psu.output(on)
-        if eng.devices.psu.output_state() != on:
+        ctx, on = self.ctx, self.step.on
+        ctx.devices.psu.output(on)
+        if ctx.devices.psu.output_state() != on:
             raise StepFailed(f"step {self.index}: power supply output did not switch {'on' if on else 'off'}")
-        eng.hw.gyro_power = on
-        eng.powered_since = now if on else None
+        ctx.hw.gyro_power = on
+        ctx.gyro_powered(now, on)
 
 
 class FitExec(StepExecutor):
     step: Fit
 
     def begin(self, now: float) -> None:
-        eng = self.eng
-        if eng.fit_hook is None:
+        ctx = self.ctx
+        if ctx.fit is None:
             result: dict[str, Any] = {"status": "fit pending", "models": list(self.step.models),
                                       "options": dict(self.step.options)}
-            eng.log("info", "fit_pending", f"fit {', '.join(self.step.models)} pending (no fit hook wired)")
+            ctx.log("info", "fit_pending", f"fit {', '.join(self.step.models)} pending (no fit hook wired)")
         else:
             try:
-                result = dict(eng.fit_hook(eng.run_id, self.index, self.step, eng.store))
+                result = dict(ctx.fit(self.index, self.step))
                 result.setdefault("status", "done")
             except Exception as exc:  # noqa: BLE001 - a failed fit must not lose the recorded run
                 self.failed_reason = f"{type(exc).__name__}: {exc}"
                 result = {"status": "failed", "models": list(self.step.models), "error": self.failed_reason}
-                eng.log("error", "fit_failed", f"fit failed: {self.failed_reason}")
-        eng.store.save_fit(eng.run_id, self.index, result)
+                ctx.log("error", "fit_failed", f"fit failed: {self.failed_reason}")
+        ctx.save_fit(self.index, result)
 
 
 EXECUTORS: dict[str, type[StepExecutor]] = {

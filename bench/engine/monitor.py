@@ -2,9 +2,9 @@
 
 Every tick: drain the gyro link (non-blocking) into a buffer handed to the store in batches, and
 record new link gaps from ``LinkStats.link_gaps``.  When due: read the DS18B20 probes and the
-chamber / turntable / PSU telemetry.  While doing so, keep the set of *conditions* that suspend a
-run (chamber alarm or input error, probe lost, gyro frames stopped, any device link down), each
-with a human-readable reason.  Nothing here commands hardware.
+chamber / turntable / PSU telemetry.  After each read, the suspenders watching that source
+(``bench.engine.suspenders``: the bench's own and those of ``BenchConfig.suspend``) update the
+*conditions* that suspend a run, each with a human-readable reason.  Nothing here commands hardware.
 """
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices
 from bench.engine.store import PsuReading, RunStore
+from bench.engine.suspenders import SOURCES, ProbeLost, Suspender, bench_suspenders
 from bench.errors import DeviceError
 from bench.interfaces import AxisState, ChamberStatus, GyroFrame
 
@@ -47,22 +48,39 @@ class Acquisition:
         self.probe_names: list[str] = list(config.probes.probes)
         self.probe_hist: dict[str, collections.deque[tuple[float, float]]] = {}
         self.probe_bad: dict[str, int] = {}
+        self.probe_fault: dict[str, str] = {}
         self.probe_read_failures = 0
         self.probe_reads = 0          # successful reads so far (lets checks skip unchanged data)
+        self.powered_since: float | None = None
+        self.psu: PsuReading | None = None
+        self.link_errors: dict[str, str] = {}
         self.conditions: dict[str, str] = {}
+        self.suspenders: dict[str, list[Suspender]] = {source: [] for source in SOURCES}
+        for suspender in bench_suspenders(config, self.probe_names):
+            self.suspenders[suspender.source].append(suspender)
         self.outer_axis = config.turntable.geometry.outer_axis_number
         self.inner_axis = config.turntable.geometry.inner_axis_number
 
     # ---- conditions -------------------------------------------------------------------------
-    def _set(self, key: str, reason: str | None) -> None:
-        if reason is None:
-            self.conditions.pop(key, None)
+    def _link(self, source: str, error: DeviceError | None) -> None:
+        if error is None:
+            self.link_errors.pop(source, None)
         else:
-            self.conditions[key] = reason
+            self.link_errors[source] = str(error)
+
+    def _watch(self, source: str, now: float) -> None:
+        """After a read of ``source``: its suspenders update the conditions."""
+        for suspender in self.suspenders[source]:
+            reason = suspender.check(self, now)
+            if reason is None:
+                self.conditions.pop(suspender.key, None)
+            else:
+                self.conditions[suspender.key] = reason
 
     # ---- per tick -----------------------------------------------------------------------------
     def tick(self, now: float, powered_since: float | None) -> None:
-        self.drain(now, powered_since)
+        self.powered_since = powered_since
+        self.drain(now)
         if now >= self.next_probe:
             self.next_probe = _next_on_grid(self.next_probe, now, self.cfg.probe_period_s)
             self.read_probes(now)
@@ -76,15 +94,15 @@ class Acquisition:
         """Bench time of the next scheduled probe read or telemetry (the engine wakes for it)."""
         return min(self.next_probe, self.next_telemetry)
 
-    def drain(self, now: float, powered_since: float | None) -> None:
+    def drain(self, now: float) -> None:
         link = self.devices.gyro
         try:
             frames = link.drain()
         except DeviceError as exc:
-            self._set("gyro_link", f"gyro link down: {exc}")
+            self._link("gyro", exc)
             frames = []
         else:
-            self._set("gyro_link", None)
+            self._link("gyro", None)
         if frames:
             self.buffer.extend(frames)
             self.frames_total += len(frames)
@@ -97,16 +115,7 @@ class Acquisition:
             for t_from, t_to in gaps[self.link_gaps_seen:]:
                 self.store.add_gap(self.run_id, float(t_from), float(t_to), "gyro link gap")
             self.link_gaps_seen = len(gaps)
-        self._check_frames(now, powered_since)
-
-    def _check_frames(self, now: float, powered_since: float | None) -> None:
-        if powered_since is None or now - powered_since < self.cfg.frames_grace_s:
-            self._set("gyro_frames", None)
-            return
-        last = max(powered_since, self.last_frames_t) if self.last_frames_t is not None else powered_since
-        silent = now - last
-        self._set("gyro_frames", f"gyro frames stopped: none for {silent:.0f} s with power on"
-                  if silent > self.cfg.frames_timeout_s else None)
+        self._watch("gyro", now)
 
     def _write(self, frames: list[GyroFrame]) -> None:
         if frames:
@@ -123,30 +132,30 @@ class Acquisition:
             readings = self.devices.probes.read_all()
         except DeviceError as exc:
             self.probe_read_failures += 1
-            if self.probe_read_failures >= self.cfg.probe_lost_reads:
-                self._set("probes_link", f"probes unreadable ({self.probe_read_failures} reads): {exc}")
+            self._link("probes", exc)
+            self._watch("probes", now)
             return
         self.probe_read_failures = 0
         self.probe_reads += 1
-        self._set("probes_link", None)
+        self._link("probes", None)
         self.store.add_probe_readings(self.run_id, now, readings)
         by_name = {r.name: r for r in readings}
         if not self.probe_names:
             self.probe_names = sorted(by_name)
+            self.suspenders["probes"][1:1] = [ProbeLost(name) for name in self.probe_names]
         for name in self.probe_names:
             reading = by_name.get(name)
             if reading is None or reading.celsius is None:
                 self.probe_bad[name] = self.probe_bad.get(name, 0) + 1
-                if self.probe_bad[name] >= self.cfg.probe_lost_reads:
-                    why = "missing from the bus" if reading is None else (reading.fault or "reading rejected")
-                    self._set(f"probe:{name}", f"probe {name} lost: {why}")
+                self.probe_fault[name] = ("missing from the bus" if reading is None
+                                          else (reading.fault or "reading rejected"))
                 continue
             self.probe_bad[name] = 0
-            self._set(f"probe:{name}", None)
             hist = self.probe_hist.setdefault(name, collections.deque())
             hist.append((now, float(reading.celsius)))
             while hist and hist[0][0] < now - HISTORY_S:
                 hist.popleft()
+        self._watch("probes", now)
 
     def latest_probes(self) -> dict[str, float | None]:
         return {name: (self.probe_hist[name][-1][1] if self.probe_hist.get(name) else None)
@@ -172,12 +181,12 @@ class Acquisition:
         try:
             status = self.devices.chamber.status()
         except DeviceError as exc:
-            self._set("chamber_link", f"chamber link down: {exc}")
+            self._link("chamber", exc)
+            self._watch("chamber", now)
             return None
-        self._set("chamber_link", None)
+        self._link("chamber", None)
         self.status, self.status_t = status, now
-        self._set("chamber_alarm", f"chamber alarm {status.alarm}" if status.alarm else None)
-        self._set("chamber_input", f"chamber input error {status.input_error}" if status.input_error else None)
+        self._watch("chamber", now)
         return status
 
     def read_telemetry(self, now: float) -> None:
@@ -187,19 +196,22 @@ class Acquisition:
             for axis in (self.outer_axis, self.inner_axis):
                 table[axis] = self.devices.turntable.read(axis)
         except DeviceError as exc:
-            self._set("table_link", f"turntable link down: {exc}")
+            self._link("table", exc)
             table = None
         else:
-            self._set("table_link", None)
+            self._link("table", None)
+        self._watch("table", now)
         psu_reading: PsuReading | None
         try:
             psu = self.devices.psu
             psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
         except DeviceError as exc:
-            self._set("psu_link", f"power supply link down: {exc}")
+            self._link("psu", exc)
             psu_reading = None
         else:
-            self._set("psu_link", None)
+            self._link("psu", None)
+            self.psu = psu_reading
+        self._watch("psu", now)
         if status is not None or table or psu_reading is not None:
             self.store.add_telemetry(self.run_id, now, status, table, psu_reading)
 

@@ -29,7 +29,8 @@ import numpy as np
 from bench.clock import AcceleratedClock, Clock, LockstepClock, SteppedClock
 from bench.config import (BenchConfig, ChamberConfig, GyroConfig, ProbeConfig, PsuConfig, TurntableConfig)
 from bench.devices.orientation import check_geometry, rotation_about
-from bench.sim.chamber import ChamberModel, ChamberSimulator
+from bench.sim.chamber import ChamberSimulator
+from bench.sim.chamber_physics import ChamberModel
 from bench.sim.gyro import GyroStreamSimulator
 from bench.sim.physics import GyroPhysics, InputBatch, PhysicsInputs
 from bench.sim.psu import PsuModel, PsuSimulator
