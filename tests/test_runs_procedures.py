@@ -18,7 +18,7 @@ SPEED = "600"
 
 # name -> (params, expected segment labels check)
 SHORT = {
-    "eight_position": ["points_c=[20,30]", "soak_h=0.04", "record_min=0.2"],
+    "eight_position": ["points_c=[20,30]", "soak_h=0.04", "record_min=1"],
     "thermal_ramp": ["start_c=26", "soak_h=0.04", "warmup_min=1", "rate_c_per_min=2", "end_c=22",
                      "final_hold_min=1"],
     "rate_cycle": ["low_c=20", "high_c=30", "initial_soak_h=0.02", "cycle_step_c=10", "cycle_hold_min=1",
