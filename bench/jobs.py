@@ -59,6 +59,16 @@ def _update(entity):
     return update(entity).execution_options(synchronize_session=False)
 
 
+def polled(step, who: str):
+    """One step of a polling loop (claim and do one run or job); a database problem is logged and
+    counts as "nothing done", so the loop waits and tries again."""
+    try:
+        return step()
+    except StorageError as exc:
+        log.warning("%s: database problem: %s", who, exc)
+        return None
+
+
 class JobRunner:
     """Claims and executes analysis jobs: ``run_one()`` does one job if any is due; ``run_forever()``
     loops until ``stop()``.  ``heartbeat_s`` / ``stale_after_s`` are wall seconds."""
@@ -82,12 +92,7 @@ class JobRunner:
     def run_forever(self) -> None:
         log.info("job worker %s started", self.worker_id)
         while not self._stop.is_set():
-            try:
-                did = self.run_one()
-            except StorageError as exc:
-                log.warning("job worker %s: database problem: %s", self.worker_id, exc)
-                did = None
-            if did is None:
+            if polled(self.run_one, f"job worker {self.worker_id}") is None:
                 self._stop.wait(self.poll_s)
 
     def run_pending(self) -> list[tuple[int, str]]:

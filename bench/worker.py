@@ -47,7 +47,7 @@ from bench.engine.factory import build_devices, close_devices, engine_config_for
 from bench.engine.lease import RunLease, fence_devices
 from bench.engine.sqlstore import SqlRunStore
 from bench.errors import BenchError, LeaseLost
-from bench.jobs import JobRunner
+from bench.jobs import JobRunner, polled
 from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
@@ -171,16 +171,9 @@ class Worker:
         log.info("worker %s serving bench %s", self.worker_id, self.bench_name)
         try:
             while not self._stop.is_set():
-                try:
-                    did = self.run_once()
-                except StorageError as exc:
-                    log.warning("worker %s: database problem: %s", self.worker_id, exc)
-                    did = None
+                did = polled(self.run_once, f"worker {self.worker_id}")
                 if did is None and self.jobs is not None and not self._stop.is_set():
-                    try:
-                        did = self.jobs.run_one()
-                    except StorageError as exc:
-                        log.warning("worker %s: database problem with the job queue: %s", self.worker_id, exc)
+                    did = polled(self.jobs.run_one, f"worker {self.worker_id} (job queue)")
                 if did is None:
                     self._stop.wait(self.poll_s)
         finally:

@@ -8,6 +8,7 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from bench.commands.service import import_dataset
+from bench.jobs import JobRunner
 from bench.storage import open_database
 from bench.storage.models import Analysis
 from tests.api_support import OPERATOR, TOKENS, VIEWER
@@ -21,7 +22,8 @@ def test_fit_and_analysis_lists_filter_by_gyro_model_and_day(tmp_path):
         runs = {g: import_dataset(db, make_run(TRAIN_PROFILE[:5], {}, seed=i)[0], g) for i, g in enumerate(("GA", "GB"))}
         for gyro, model in (("GA", "static"), ("GA", "static"), ("GA", "t1 + dt1"), ("GB", "static")):
             r = client.post("/fits", json={"model": model, "run_ids": [runs[gyro]], "channels": ["x"]}, headers=OPERATOR)
-            assert r.status_code == 201, r.text
+            assert r.status_code == 202, r.text          # a fit is a job
+        assert [status for _, status in JobRunner(db).run_pending()] == ["done"] * 4
         fits = client.get("/fits", headers=VIEWER).json()["fits"]
         assert [(f["gyro_id"], f["model"], f["version"]) for f in fits][:2] == [("GB", "static", 1), ("GA", "formula", 1)]
         assert len(fits) == 4 and fits[0]["channels"]["x"]["train_std100_dph"] > 0

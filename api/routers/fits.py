@@ -8,6 +8,7 @@ the id of any of those rows and answers with the whole version.
 from __future__ import annotations
 
 import datetime as dt
+from dataclasses import dataclass
 
 from typing import Any, Literal
 
@@ -125,11 +126,35 @@ def gyro_fits(gyro_id: GyroPath, db: Database = Depends(get_db), _: Principal = 
 
 
 # ------------------------------------------------------------------------------------ listings
-def _day_bounds(date_from: dt.date | None, date_to: dt.date | None) -> tuple[dt.datetime | None, dt.datetime | None]:
-    """[from 00:00 UTC, the day after ``date_to`` 00:00 UTC): both days included."""
+@dataclass(frozen=True)
+class ListFilters:
+    """The filters of the listings: gyro, model, a day range (UTC, both days included) and a limit."""
+
+    gyro_id: str | None
+    model: str | None
+    lo: dt.datetime | None          # from 00:00 UTC of ``date_from``
+    hi: dt.datetime | None          # to 00:00 UTC of the day after ``date_to`` (excluded)
+    limit: int
+
+
+def list_filters(gyro_id: str | None = Query(None, min_length=1, max_length=64),
+                 model: str | None = Query(None, min_length=1, max_length=300),
+                 date_from: dt.date | None = Query(None, description="on or after this day (UTC)"),
+                 date_to: dt.date | None = Query(None, description="on or before this day (UTC)"),
+                 limit: int = Query(100, ge=1, le=1000)) -> ListFilters:
     lo = dt.datetime.combine(date_from, dt.time(), dt.timezone.utc) if date_from else None
     hi = dt.datetime.combine(date_to + dt.timedelta(days=1), dt.time(), dt.timezone.utc) if date_to else None
-    return lo, hi
+    return ListFilters(gyro_id, model, lo, hi, limit)
+
+
+def _filtered(stmt, f: ListFilters, gyro_col, created_col):
+    if f.gyro_id is not None:
+        stmt = stmt.where(gyro_col == f.gyro_id)
+    if f.lo is not None:
+        stmt = stmt.where(created_col >= f.lo)
+    if f.hi is not None:
+        stmt = stmt.where(created_col < f.hi)
+    return stmt
 
 
 def _metric(row: Fit, part: str, name: str) -> float | None:
@@ -139,27 +164,16 @@ def _metric(row: Fit, part: str, name: str) -> float | None:
 
 @router.get("/fits", summary="Stored fit versions, newest first, filtered by gyro, model and creation date")
 def list_fits(db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
-              gyro_id: str | None = Query(None, min_length=1, max_length=64),
-              model: str | None = Query(None, min_length=1, max_length=300),
-              date_from: dt.date | None = Query(None, description="created on or after this day (UTC)"),
-              date_to: dt.date | None = Query(None, description="created on or before this day (UTC)"),
-              limit: int = Query(100, ge=1, le=1000)):
+              f: ListFilters = Depends(list_filters)):
     """One entry per version (gyro, model, version) with its channels' training and validation errors."""
-    lo, hi = _day_bounds(date_from, date_to)
-    stmt = select(Fit)
-    if gyro_id is not None:
-        stmt = stmt.where(Fit.gyro_id == gyro_id)
-    if model is not None:
-        stmt = stmt.where(Fit.model == model)
-    if lo is not None:
-        stmt = stmt.where(Fit.created_at >= lo)
-    if hi is not None:
-        stmt = stmt.where(Fit.created_at < hi)
+    stmt = _filtered(select(Fit), f, Fit.gyro_id, Fit.created_at)
+    if f.model is not None:
+        stmt = stmt.where(Fit.model == f.model)
     with db.session() as s:
         groups: dict[tuple[str, str, int], list[Fit]] = {}
         for r in s.scalars(stmt.order_by(Fit.created_at.desc(), Fit.id.desc())):
             key = (r.gyro_id, r.model, r.version)
-            if key not in groups and len(groups) >= limit:
+            if key not in groups and len(groups) >= f.limit:
                 break
             groups.setdefault(key, []).append(r)
         out = []
@@ -192,22 +206,11 @@ def _analysis_summary(a: Analysis) -> dict[str, Any]:
 
 @router.get("/close-loop", summary="Close-the-loop analyses, newest first, filtered by gyro, model and date")
 def list_close_loop(db: Database = Depends(get_db), _: Principal = Depends(require("viewer")),
-                    gyro_id: str | None = Query(None, min_length=1, max_length=64),
-                    model: str | None = Query(None, min_length=1, max_length=300),
-                    date_from: dt.date | None = Query(None, description="requested on or after this day (UTC)"),
-                    date_to: dt.date | None = Query(None, description="requested on or before this day (UTC)"),
-                    limit: int = Query(100, ge=1, le=1000)):
-    lo, hi = _day_bounds(date_from, date_to)
-    stmt = select(Analysis).where(Analysis.kind == "close_loop")
-    if gyro_id is not None:
-        stmt = stmt.where(Analysis.gyro_id == gyro_id)
-    if lo is not None:
-        stmt = stmt.where(Analysis.created_at >= lo)
-    if hi is not None:
-        stmt = stmt.where(Analysis.created_at < hi)
+                    f: ListFilters = Depends(list_filters)):
+    stmt = _filtered(select(Analysis).where(Analysis.kind == "close_loop"), f, Analysis.gyro_id, Analysis.created_at)
     with db.session() as s:
         rows = [a for a in s.scalars(stmt.order_by(Analysis.created_at.desc(), Analysis.id.desc()))
-                if model is None or (a.request or {}).get("model") == model][:limit]
+                if f.model is None or (a.request or {}).get("model") == f.model][:f.limit]
         return {"analyses": [_analysis_summary(a) for a in rows]}
 
 

@@ -14,6 +14,13 @@ from bench.commands.common import (clean_floats, db_option, guarded, load_datase
                                    write_json)
 
 
+# the arguments and options both commands take (one declaration each)
+TRAIN_ARG = typer.Argument(..., help="training data: measured-data CSV or run ID")
+HTML_OPT = typer.Option(None, "--html", help="write the HTML report here")
+CHANNEL_OPT = typer.Option(None, "--channel", help="channel(s) (default: all)")
+LATITUDE_OPT = typer.Option(None, "--latitude", help="latitude in degrees (Earth-rate removal)")
+
+
 def register(app: typer.Typer) -> None:
     app.command("fit")(fit_command)
     app.command("close-loop")(close_loop_command)
@@ -34,12 +41,12 @@ def _summary(line: str, json_out: str) -> None:
 def fit_command(
     model: str = typer.Argument(..., help="static, dynamic, patent37, hrg, hrg_pso, hrg_reverse, fog_stepwise, "
                                           "fog_delaunay, or a formula like 't1 + t1^2 + dt1'"),
-    train: str = typer.Argument(..., help="training data: measured-data CSV or run ID"),
+    train: str = TRAIN_ARG,
     validate: Optional[str] = typer.Argument(None, help="validation data: measured-data CSV or run ID"),
     json_out: str = typer.Option(..., "--json", help="write the result JSON here ('-' = stdout)"),
-    html_out: Optional[str] = typer.Option(None, "--html", help="write the HTML report here"),
-    channel: Optional[list[str]] = typer.Option(None, "--channel", help="channel(s) to fit (default: all)"),
-    latitude: Optional[float] = typer.Option(None, "--latitude", help="latitude in degrees (Earth-rate removal)"),
+    html_out: Optional[str] = HTML_OPT,
+    channel: Optional[list[str]] = CHANNEL_OPT,
+    latitude: Optional[float] = LATITUDE_OPT,
     db_url: Optional[str] = db_option(),
 ) -> None:
     """Fit a temperature model and report its error on the training and validation data."""
@@ -91,13 +98,13 @@ def fit_command(
 
 @guarded
 def close_loop_command(
-    train: str = typer.Argument(..., help="training data: measured-data CSV or run ID"),
+    train: str = TRAIN_ARG,
     validate: str = typer.Argument(..., help="held-out validation data: measured-data CSV or run ID"),
     model: str = typer.Option(..., "--model", help="declared model: a linear named model or a formula"),
     json_out: str = typer.Option(..., "--json", help="write the report JSON here ('-' = stdout)"),
-    html_out: Optional[str] = typer.Option(None, "--html", help="write the HTML report here"),
-    channel: Optional[list[str]] = typer.Option(None, "--channel", help="channel(s) (default: all)"),
-    latitude: Optional[float] = typer.Option(None, "--latitude", help="latitude in degrees (Earth-rate removal)"),
+    html_out: Optional[str] = HTML_OPT,
+    channel: Optional[list[str]] = CHANNEL_OPT,
+    latitude: Optional[float] = LATITUDE_OPT,
     db_url: Optional[str] = db_option(),
 ) -> None:
     """Find what the declared model misses, add the effects that help on the held-out run, report."""
