@@ -11,6 +11,13 @@ the write lock serialises claims.  While the job runs, a heartbeat thread refres
 and a fit job stores its fit rows in that same transaction: a worker that lost its lease (frozen past
 ``stale_after_s``, its job claimed by another) finishes nothing and stores nothing; it logs why.
 A job claimed ``max_attempts`` times without finishing (it kills its workers) ends ``failed``.
+
+Hold point (tests)
+------------------
+With ``hold_file`` (``BENCH_JOB_HOLD_FILE`` for ``bench worker --analysis``), a job whose analysis has run
+stops before it finishes while that file exists: the worker writes ``<job id> <worker id>`` to
+``<hold_file>.held`` once it got there and goes on (heartbeat kept) when the file is removed.  Tests kill
+workers at that point, where the job is provably running and nothing of it is stored.
 """
 from __future__ import annotations
 
@@ -19,7 +26,9 @@ import logging
 import os
 import socket
 import threading
+import time
 import uuid
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import and_, or_, select, update
@@ -74,7 +83,8 @@ class JobRunner:
     loops until ``stop()``.  ``heartbeat_s`` / ``stale_after_s`` are wall seconds."""
 
     def __init__(self, db: Database, *, worker_id: str | None = None, heartbeat_s: float = 1.0,
-                 stale_after_s: float = 15.0, poll_s: float = 0.5, max_attempts: int = MAX_ATTEMPTS) -> None:
+                 stale_after_s: float = 15.0, poll_s: float = 0.5, max_attempts: int = MAX_ATTEMPTS,
+                 hold_file: str | None = None) -> None:
         if stale_after_s <= 2 * heartbeat_s:
             raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
         self.db = db
@@ -83,6 +93,7 @@ class JobRunner:
         self.stale_after_s = stale_after_s
         self.poll_s = poll_s
         self.max_attempts = max_attempts
+        self.hold_file = hold_file
         self._stop = threading.Event()
         self.done: list[tuple[int, str]] = []
 
@@ -144,22 +155,33 @@ class JobRunner:
         beat = threading.Thread(target=self._heartbeat_loop, args=(job_id, stop_beat), daemon=True,
                                 name=f"heartbeat-job{job_id}")
         beat.start()
+        outcome, error = None, None
         try:
             try:
                 outcome = JOBS[kind](self.db, request)
             except (BenchError, ValueError, KeyError) as exc:
-                detail = str(exc) if isinstance(exc, AnalysisInputError) else f"{type(exc).__name__}: {exc}"
-                status = self._finish(job_id, "failed", error=detail)
+                error = str(exc) if isinstance(exc, AnalysisInputError) else f"{type(exc).__name__}: {exc}"
             except Exception as exc:  # noqa: BLE001 - the failure is the job's result, reported to the caller
                 log.exception("job %s (%s) failed", job_id, kind)
-                status = self._finish(job_id, "failed", error=f"internal error {type(exc).__name__}: {exc}")
-            else:
-                status = self._finish(job_id, "done", outcome=outcome)
+                error = f"internal error {type(exc).__name__}: {exc}"
+            self._hold_point(job_id)
+            status = self._finish(job_id, "done" if error is None else "failed", outcome=outcome, error=error)
         finally:
             stop_beat.set()
             beat.join(timeout=10)
         self.done.append((job_id, status))
         return job_id
+
+    def _hold_point(self, job_id: int) -> None:
+        """Tests only: while ``hold_file`` exists, wait here (the job is running, its result not stored)."""
+        if self.hold_file is None or not Path(self.hold_file).exists():
+            return
+        tmp = Path(self.hold_file + ".held.tmp")
+        tmp.write_text(f"{job_id} {self.worker_id}")
+        tmp.replace(self.hold_file + ".held")
+        log.warning("job %s held before finishing while %s exists", job_id, self.hold_file)
+        while Path(self.hold_file).exists():
+            time.sleep(0.02)
 
     def _finish(self, job_id: int, status: str, *, outcome: Outcome | None = None, error: str | None = None) -> str:
         """End the job under this worker's lease; a fit job's rows are stored in the same transaction.

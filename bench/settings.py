@@ -12,6 +12,8 @@ BENCH_CONFIG               bench config JSON for ``bench run`` without ``--confi
 BENCH_LOG_FORMAT           ``text`` or ``json`` (JSON lines) for the service logs (text)
 BENCH_SIM_HOLD_FILE        simulated bench only: a file naming a bench instant at which the lockstep
                            clock holds (tests use it to stop a run at a known instant; none)
+BENCH_JOB_HOLD_FILE        analysis workers only: while this file exists, a job whose analysis has run
+                           waits before finishing (tests kill workers there; none)
 =========================  ==========================================================================
 
 ``load_settings()`` reads the environment on every call (tests and ``bench demo`` set variables at run
@@ -39,6 +41,8 @@ class Settings(BaseSettings):
     config: str = Field("", description="bench config JSON used by bench run without --config")
     log_format: Literal["text", "json"] = Field("text", description="service log format")
     sim_hold_file: str = Field("", description="simulated bench: file naming a bench instant to hold at (tests)")
+    job_hold_file: str = Field("", description="analysis workers: while this file exists, jobs wait before "
+                                               "finishing (tests)")
 
     @property
     def database_url_or_default(self) -> str:

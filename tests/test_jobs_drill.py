@@ -1,11 +1,12 @@
 """Durable analysis jobs under faults, on SQLite and PostgreSQL, with real processes: the API
 (uvicorn) and analysis workers (``bench worker --analysis``).
 
-Drill: a close-the-loop job is queued over HTTP; once a worker holds it (``running``), the worker is
-frozen (SIGSTOP: it cannot finish while we look) and then it and the API are killed with SIGKILL.
-A new API and a new worker come up: the job is claimed again (its heartbeat is stale), ends ``done``
-and its report page is served as stored.  Also: a worker frozen past its lease whose job was re-run
-by another finishes nothing and stores nothing when it wakes (fenced).
+Drill: a close-the-loop job is queued over HTTP; the worker that claims it stops at the job hold point
+(``BENCH_JOB_HOLD_FILE``: its analysis has run, nothing of it is stored yet), and there it and the API are
+killed with SIGKILL.  The hold is lifted, a new API and a new worker come up: the job is claimed again (its
+heartbeat is stale), ends ``done`` and its report page is served as stored.  Also: a held worker goes on
+when the hold file is removed; a worker frozen past its lease whose job was re-run by another finishes
+nothing and stores nothing when it wakes (fenced).  Data are just above the close-loop minimum lengths.
 """
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from pathlib import Path
 
 import httpx
 import pytest
@@ -25,8 +28,9 @@ from bench.storage.models import Analysis, Fit
 from tests import synth
 from tests.api_support import OPERATOR, TOKENS, VIEWER
 
-DAY = [("hold", 3600), ("ramp", 60, 1.0), ("hold", 14400), ("ramp", -20, 0.5), ("hold", 14400),
-       ("ramp", 45, 2.0), ("hold", 14400), ("ramp", 0, 1.0), ("hold", 14400), ("ramp", 30, 0.25)]
+# 3302 s of training and 1402 s of validation at 1 s: just above MIN_TRAIN_S and MIN_VALIDATE_S
+TRAIN = [("hold", 300), ("ramp", 55, 2.0), ("hold", 600), ("ramp", 15, 2.0), ("hold", 300)]
+VALIDATE = [("hold", 150), ("ramp", 45, 2.0), ("hold", 250), ("ramp", 35, 2.0), ("hold", 100)]
 HIDDEN = {"gradient": 0.06, "rate": 0.08}
 DEADLINE_S = 300.0          # generous: a loaded 2-core machine; the drill waits on states, never on time
 
@@ -44,9 +48,9 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _env(db_url: str) -> dict[str, str]:
+def _env(db_url: str, hold_file: str = "") -> dict[str, str]:
     tokens = ",".join(f"{role}:{token}" for token, role in TOKENS.items())
-    return {**os.environ, "BENCH_DATABASE_URL": db_url, "BENCH_TOKENS": tokens}
+    return {**os.environ, "BENCH_DATABASE_URL": db_url, "BENCH_TOKENS": tokens, "BENCH_JOB_HOLD_FILE": hold_file}
 
 
 def _start_api(db_url: str, port: int) -> subprocess.Popen:
@@ -64,9 +68,10 @@ def _start_api(db_url: str, port: int) -> subprocess.Popen:
     raise AssertionError("the API did not start")
 
 
-def _start_worker(db_url: str) -> subprocess.Popen:
+def _start_worker(db_url: str, hold_file: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "bench", "worker", "--analysis", "--heartbeat", "0.2",
-                             "--stale-after", "1.5", "--poll", "0.05", "--log-level", "warning"], env=_env(db_url))
+                             "--stale-after", "1.5", "--poll", "0.05", "--log-level", "warning"],
+                            env=_env(db_url, hold_file))
 
 
 def _wait(predicate, what: str, poll_s: float = 0.01):
@@ -89,16 +94,29 @@ def _job(db, job_id: int) -> Analysis:
 def _import_pair(db):
     from bench.commands.service import import_dataset
 
-    train, _ = synth.make_run(DAY, HIDDEN, seed=1, dt=1.0)
-    validate, _ = synth.make_run(synth.VALIDATE_PROFILE * 2, HIDDEN, seed=2, dt=1.0)
+    train, _ = synth.make_run(TRAIN, HIDDEN, seed=1, dt=1.0)
+    validate, _ = synth.make_run(VALIDATE, HIDDEN, seed=2, dt=1.0)
     return import_dataset(db, train, "G-DRILL"), import_dataset(db, validate, "G-DRILL")
 
 
-def test_kill_api_and_worker_during_a_close_loop_job(db_url):
+def _held(hold_file: Path) -> tuple[int, str] | None:
+    """(job id, worker id) a worker wrote once it stopped at the hold point, or None."""
+    try:
+        job_id, worker = Path(f"{hold_file}.held").read_text().split()
+    except FileNotFoundError:
+        return None
+    return int(job_id), worker
+
+
+def test_kill_api_and_worker_during_a_close_loop_job(db_url, tmp_path):
     db = open_database(db_url)
     procs: list[subprocess.Popen] = []
+    hold = tmp_path / "job.hold"
+    hold.touch()
     try:
         train, val = _import_pair(db)
+        worker = _start_worker(db_url, str(hold))           # it boots while the API does; nothing is queued yet
+        procs.append(worker)
         port = _free_port()
         api = _start_api(db_url, port)
         procs.append(api)
@@ -108,32 +126,38 @@ def test_kill_api_and_worker_during_a_close_loop_job(db_url):
                        headers=OPERATOR, timeout=30)
         assert r.status_code == 202, r.text
         job_id = r.json()["id"]
-        worker = _start_worker(db_url)
-        procs.append(worker)
-        first = _wait(lambda: (j := _job(db, job_id)).status != "queued" and j, "the worker to claim the job")
-        os.kill(worker.pid, signal.SIGSTOP)
-        held = _job(db, job_id)
-        assert held.status == "running" and held.attempts == 1, \
-            f"the job must still be running when its worker is killed (it was {held.status})"
+        held_job, held_by = _wait(lambda: _held(hold), "the worker to reach the job hold point")
+        first = _job(db, job_id)
+        assert (held_job, held_by) == (job_id, first.worker)
+        assert (first.status, first.attempts, first.finished_at, first.result, first.report_html) == \
+            ("running", 1, None, None, None), "the job must be running, nothing of it stored, when it is killed"
         for proc in (worker, api):
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(timeout=30)
         procs.clear()
-        # restart everything: a new API, a new worker; the job is claimed again once its heartbeat is stale
+        assert _job(db, job_id).status == "running"
+        # lift the hold, restart everything: a new API, a new worker; the job is claimed again once its
+        # heartbeat is stale
+        hold.unlink()
+        Path(f"{hold}.held").unlink()
+        procs.append(_start_worker(db_url, str(hold)))
         port = _free_port()
         procs.append(_start_api(db_url, port))
-        procs.append(_start_worker(db_url))
         base = f"http://127.0.0.1:{port}"
         doc = _wait(lambda: (d := httpx.get(f"{base}/close-loop/{job_id}", headers=VIEWER, timeout=30).json())
                     ["status"] in ("done", "failed") and d, "the job to end", poll_s=0.2)
         assert doc["status"] == "done", doc["error"]
         assert doc["attempts"] == 2 and doc["worker"] != first.worker
         assert doc["result"]["channels"]["x"]["verdict"]
+        assert _held(hold) is None, "the second worker must not have held"
+        stored = _job(db, job_id)
+        assert (stored.worker, stored.attempts) == (doc["worker"], 2) and stored.report_html
         t0 = time.perf_counter()
         page = httpx.get(f"{base}{doc['report_url']}", headers=VIEWER, timeout=30)
         print(f"\n{db.dialect}: report page ({len(page.content) / 1e6:.1f} MB) served in "
               f"{(time.perf_counter() - t0) * 1e3:.0f} ms")
         assert page.status_code == 200 and page.text.lstrip().lower().startswith("<!doctype html")
+        assert page.text == stored.report_html
     finally:
         for proc in procs:
             if proc.poll() is None:
@@ -161,13 +185,46 @@ def test_a_worker_that_lost_its_job_stores_nothing(db_url):
         with db.session() as s:                              # B's claim, seen from the database
             assert s.get(Analysis, job_id).worker == "worker-b"
         from bench.analysis import fit_job
-        b_outcome = fit_job(db, {"model": "static", "run_ids": [train]})
-        assert b._finish(job_id, "done", outcome=b_outcome) == "done"
-        assert a._finish(job_id, "done", outcome=fit_job(db, {"model": "static", "run_ids": [train]})) == "lost"
+        # both compute the same deterministic fit of the same run (its rows to store): computed once
+        outcome = fit_job(db, {"model": "static", "run_ids": [train]})
+        assert outcome.fits
+        assert b._finish(job_id, "done", outcome=outcome) == "done"
+        assert a._finish(job_id, "done", outcome=outcome) == "lost"
         with db.session() as s:
             job = s.get(Analysis, job_id)
             assert (job.status, job.worker, job.attempts) == ("done", "worker-b", 2)
             versions = {f.version for f in s.query(Fit).filter(Fit.gyro_id == "G-FENCE")}
         assert versions == {1}
     finally:
+        db.dispose()
+
+
+def test_a_held_job_goes_on_when_the_hold_file_is_removed(tmp_path):
+    """At the hold point the job is running under a live heartbeat, nothing stored; removing the file lets
+    the same worker finish it."""
+    from bench.commands.service import import_dataset
+    from tests.test_api_http import synthetic_dataset
+
+    db = open_database(f"sqlite:///{tmp_path / 'hold.sqlite'}")
+    hold = tmp_path / "job.hold"
+    hold.touch()
+    runner = JobRunner(db, worker_id="worker-h", heartbeat_s=0.05, stale_after_s=0.2, hold_file=str(hold))
+    try:
+        train = import_dataset(db, synthetic_dataset(seed=3), "G-HOLD")
+        with db.session() as s:
+            job_id = enqueue(s, "fit", {"model": "static", "run_ids": [train]}).id
+        thread = threading.Thread(target=runner.run_one)
+        thread.start()
+        assert _wait(lambda: _held(hold), "the hold point") == (job_id, "worker-h")
+        beat = _job(db, job_id).heartbeat_at
+        _wait(lambda: _job(db, job_id).heartbeat_at > beat, "a heartbeat while held")
+        job = _job(db, job_id)
+        assert (job.status, job.worker, job.result, job.fit_id) == ("running", "worker-h", None, None)
+        hold.unlink()
+        thread.join(timeout=DEADLINE_S)
+        assert not thread.is_alive() and runner.done == [(job_id, "done")]
+        with db.session() as s:
+            assert s.query(Fit).filter(Fit.gyro_id == "G-HOLD").count() > 0
+    finally:
+        hold.unlink(missing_ok=True)
         db.dispose()

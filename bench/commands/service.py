@@ -220,8 +220,10 @@ def worker_command(
     db = open_database(db_url)
     if analysis:
         from bench.jobs import JobRunner
+        from bench.settings import load_settings
 
-        runner = JobRunner(db, heartbeat_s=heartbeat_s, stale_after_s=stale_after_s, poll_s=poll_s)
+        runner = JobRunner(db, heartbeat_s=heartbeat_s, stale_after_s=stale_after_s, poll_s=poll_s,
+                           hold_file=load_settings().job_hold_file or None)
         signal.signal(signal.SIGTERM, lambda *_: runner.stop())
         typer.echo(f"analysis worker {runner.worker_id} ({db.dialect})", err=True)
         runner.run_forever()
