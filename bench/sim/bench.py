@@ -89,9 +89,10 @@ class SimulatedBench:
         self.data_rate_hz = data_rate_hz or (LOCKSTEP_DATA_RATE_HZ if self.lockstep else default_data_rate(speed_eff))
         self.bench_name = bench_name
         self._own_w1 = w1_root is None
-        # a memory file system when there is one: sysfs is memory too, and a disk journal makes
-        # every rewrite cost milliseconds
-        shm = "/dev/shm" if Path("/dev/shm").is_dir() and os.access("/dev/shm", os.W_OK) else None
+        # a memory file system when there is one (sysfs is memory too, and a disk journal makes every
+        # rewrite cost milliseconds), unless the user names a temporary directory with $TMPDIR
+        shm = ("/dev/shm" if not os.environ.get("TMPDIR") and Path("/dev/shm").is_dir()
+               and os.access("/dev/shm", os.W_OK) else None)
         self.w1_root = Path(w1_root or tempfile.mkdtemp(prefix="bench-w1-", dir=shm))
         base = BenchConfig()
         self.geometry = base.turntable.geometry
