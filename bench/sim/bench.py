@@ -156,8 +156,10 @@ class SimulatedBench:
         for server in (self.turntable, self.psu, self.gyro, self.w1):
             server.start()
         if self.lockstep:
-            self.clock.serve("w1", self.w1.serve)
+            # the gyro first: its frames since the last instant are sampled on the way to the new
+            # instant (the physics cannot rewind); the probes then read the state at the instant
             self.clock.serve("gyro", self.gyro.serve)
+            self.clock.serve("w1", self.w1.serve)
         self.started = True
         return self
 
