@@ -472,7 +472,7 @@ class GyroPhysics:
             if eff.hysteresis and ch in eff.hysteresis.amplitude_dph:
                 col += eff.hysteresis.amplitude_dph[ch] * traj.hyst
             if eff.warmup and ch in eff.warmup.amplitude_dph:
-                col += eff.warmup.amplitude_dph[ch] * np.where(on, np.exp(-np.nan_to_num(t_on, nan=np.inf) / eff.warmup.tau_s), 0.0)
+                col += eff.warmup.amplitude_dph[ch] * np.where(on, np.exp(-np.where(np.isnan(t_on), np.inf, t_on) / eff.warmup.tau_s), 0.0)
             if eff.cross_channel_temperature and ch in eff.cross_channel_temperature:
                 cc = eff.cross_channel_temperature[ch]
                 src = self._own_idx[self.channels.index(cc.source_channel)]
@@ -509,7 +509,7 @@ class GyroPhysics:
                 for ch in self.channels])
             if sc.hrg.noise_hz > 0:
                 freq = freq + sc.hrg.noise_hz * self._rng_freq.standard_normal((n, 3))
-        valid = on & (np.nan_to_num(t_on, nan=-np.inf) >= sc.startup_invalid_s)
+        valid = on & (np.where(np.isnan(t_on), -np.inf, t_on) >= sc.startup_invalid_s)
         probes = {p: traj.temps[:, k] for p, k in self._probe_idx.items()}
         return Outputs(traj.times, rate, bias, accel, traj.temps[:, self._sensor_idx], probes, freq, valid, on, traj)
 
