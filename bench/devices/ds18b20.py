@@ -61,8 +61,7 @@ FAILED_CONVERSION_RAW = 0x07FF
 MIN_C, MAX_C = -55.0, 125.0
 
 
-def dallas_crc8(data: bytes) -> int:
-    """Dallas/Maxim CRC-8: poly x^8+x^5+x^4+1 (0x8C reflected), init 0, LSB first, no final xor."""
+def _crc8_bitwise(data: bytes) -> int:
     crc = 0
     for byte in data:
         for _ in range(8):
@@ -71,6 +70,18 @@ def dallas_crc8(data: bytes) -> int:
             if mix:
                 crc ^= 0x8C
             byte >>= 1
+    return crc
+
+
+_CRC8_TABLE = tuple(_crc8_bitwise(bytes([i])) for i in range(256))
+
+
+def dallas_crc8(data: bytes) -> int:
+    """Dallas/Maxim CRC-8: poly x^8+x^5+x^4+1 (0x8C reflected), init 0, LSB first, no final xor
+    (one table look-up per byte; the table is the bitwise definition applied to each byte value)."""
+    crc = 0
+    for byte in data:
+        crc = _CRC8_TABLE[crc ^ byte]
     return crc
 
 
@@ -166,15 +177,17 @@ class W1ProbeArray:
         self.probes = {name: normalise_serial(serial, f"probes.{name}") for name, serial in config.probes.items()}
         self.fault_counts: dict[str, Counter[str]] = {name: Counter() for name in self.probes}
         self.good_reads: Counter[str] = Counter()
+        self._paths: dict[str, str] = {}         # w1_slave path per probe (read every 2 s of bench time)
 
     def path_of(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}" / "w1_slave"
 
     def read_one(self, name: str) -> ProbeReading:
         serial = self.probes[name]
-        path = self.path_of(name)
+        path = self._paths.get(name) or self._paths.setdefault(name, str(self.path_of(name)))
         try:
-            text = path.read_text(encoding="ascii", errors="replace")
+            with open(path, encoding="ascii", errors="replace") as fh:
+                text = fh.read()
         except OSError as exc:
             return self._reject(name, FAULT_VANISHED, f"{path}: {exc.strerror or exc}")
         try:

@@ -19,8 +19,10 @@ Before every request pending input is discarded (``reset_input_buffer``).
 """
 from __future__ import annotations
 
+import select
 import socket
 import threading
+import time
 from dataclasses import dataclass
 from typing import Callable, TypeVar
 
@@ -63,6 +65,7 @@ class SerialLine:
         self._port: serial.SerialBase | None = None
         self._opened_once = False
         self._lock = threading.RLock()
+        self._carry = b""          # bytes received past the end of the last reply read (this transaction)
 
     # connection ------------------------------------------------------------------------------
     @property
@@ -121,6 +124,7 @@ class SerialLine:
         assert port is not None
         self.stats.requests += 1
         try:
+            self._carry = b""
             port.reset_input_buffer()
             port.write(request.encode(self.encoding) + self.write_terminator)
             port.flush()
@@ -137,7 +141,7 @@ class SerialLine:
     # readers (called inside transact) ----------------------------------------------------------
     def read_line(self, request: str = "") -> str:
         """Read up to the read terminator; strip it and a trailing CR; decode."""
-        raw = self._read(lambda port: port.read_until(self.read_terminator), request)
+        raw = self._read(self._read_through_terminator, request)
         if not raw.endswith(self.read_terminator):
             self._timed_out()
             got = f" (partial {raw!r})" if raw else ""
@@ -149,7 +153,7 @@ class SerialLine:
         return self._decode(text, request)
 
     def read_exact(self, size: int, request: str = "") -> bytes:
-        raw = self._read(lambda port: port.read(size), request)
+        raw = self._read(lambda port: self._read_size(port, size), request)
         if len(raw) != size:
             self._timed_out()
             raise DeviceTimeout(f"{self.name} at {self.url}: expected {size} bytes in reply to {request!r}, "
@@ -158,6 +162,35 @@ class SerialLine:
 
     def decode(self, data: bytes, request: str = "") -> str:
         return self._decode(data, request)
+
+    def _read_through_terminator(self, port: serial.SerialBase) -> bytes:
+        """The reply up to and including the read terminator (or what came within ``timeout_s``).
+
+        pyserial's ``read_until`` asks the port for one byte per call (a select and a recv per byte
+        on ``socket://``); this waits for the first bytes, then takes everything already received
+        in one read.  Bytes past the terminator are kept for the next read of this transaction."""
+        term = self.read_terminator
+        buf = bytearray(self._carry)
+        self._carry = b""
+        deadline = time.monotonic() + self.timeout_s
+        while term not in buf:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            chunk = _read_available(port, left)
+            if not chunk:
+                break
+            buf += chunk
+        end = buf.find(term)
+        if end < 0:
+            return bytes(buf)
+        end += len(term)
+        self._carry = bytes(buf[end:])
+        return bytes(buf[:end])
+
+    def _read_size(self, port: serial.SerialBase, size: int) -> bytes:
+        head, self._carry = self._carry[:size], self._carry[size:]
+        return head + port.read(size - len(head)) if len(head) < size else head
 
     def _read(self, op: Callable[[serial.SerialBase], bytes], request: str) -> bytes:
         port = self._port
@@ -178,6 +211,25 @@ class SerialLine:
     def _timed_out(self) -> None:
         self.stats.timeouts += 1
         self.close()
+
+
+def _read_available(port: serial.SerialBase, wait_s: float) -> bytes:
+    """Wait up to ``wait_s`` (the port's own timeout for a device port) for input, then return every
+    byte already received; b"" when nothing came."""
+    sock = getattr(port, "_socket", None)
+    if isinstance(port, protocol_socket.Serial) and sock is not None:
+        ready, _, _ = select.select([sock], [], [], wait_s)
+        if not ready:
+            return b""
+        data = sock.recv(4096)
+        if not data:
+            raise serial.SerialException("socket disconnected")
+        return data
+    first = port.read(1)
+    if not first:
+        return b""
+    waiting = port.in_waiting
+    return first + port.read(waiting) if waiting else first
 
 
 def _close_port(port: serial.SerialBase) -> None:

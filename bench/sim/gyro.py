@@ -161,6 +161,9 @@ class GyroStreamSimulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._lockstep = bool(getattr(clock, "lockstep", False))
+        # free-running, this loop also paces the frames (2 ms); in lockstep the clock's serve() writes
+        # them and the loop only answers commands (select wakes at once when one arrives)
+        self._poll_s = 0.05 if self._lockstep else 0.002
         self._client_bytes = 0           # bytes written on the current client connection
         self._client_peer: tuple | None = None
         self._listener: socket.socket | None = None
@@ -272,7 +275,7 @@ class GyroStreamSimulator:
             if self._pty_master is not None:
                 readers.append(self._pty_master)
             if readers:
-                ready, _, _ = select.select(readers, [], [], 0.002)
+                ready, _, _ = select.select(readers, [], [], self._poll_s)
             else:
                 time.sleep(0.002)
                 ready = []

@@ -32,6 +32,29 @@ def stream_rng(seed: int, stream: int, index: int = 0) -> np.random.Generator:
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, stream, index])
 
 
+SHORT_RUN = 32      # below this many steps a Python recursion beats one lfilter call per column
+
+
+def first_order_recursion(phi, x: np.ndarray, y0) -> np.ndarray:
+    """y[k] = phi * y[k-1] + x[k] with y[-1] = y0, down axis 0 of ``x`` ((n,) with scalar phi / y0, or
+    (n, m) with phi / y0 of shape (m,)).  The same arithmetic as ``lfilter([1], [1, -phi], x, zi=[phi y0])``
+    (identical values); short runs (one lockstep instant: a step or two) skip lfilter's per-call cost."""
+    n = x.shape[0]
+    if n < SHORT_RUN:
+        out = np.empty_like(x)
+        prev = y0
+        for k in range(n):
+            prev = phi * prev + x[k]
+            out[k] = prev
+        return out
+    if x.ndim == 1:
+        return lfilter([1.0], [1.0, -phi], x, zi=[phi * y0])[0]
+    out = np.empty_like(x)
+    for j in range(x.shape[1]):
+        out[:, j], _ = lfilter([1.0], [1.0, -phi[j]], x[:, j], zi=[phi[j] * y0[j]])
+    return out
+
+
 class CorrelatedNoise:
     """Gauss-Markov sum + rate random walk for one channel, advanced on the physics grid (deg/h)."""
 
@@ -60,7 +83,7 @@ class CorrelatedNoise:
             for j, gm in enumerate(gms):
                 phi = np.exp(-h / gm.tau_s)
                 drive = gm.sigma_dph * np.sqrt(1.0 - phi * phi) * e[:, j]
-                y, _ = lfilter([1.0], [1.0, -phi], drive, zi=[phi * self._gm[j]])
+                y = first_order_recursion(float(phi), drive, float(self._gm[j]))
                 self._gm[j] = y[-1]
                 out += y
         if self._spec.rrw_dph_rt_h > 0:

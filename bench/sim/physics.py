@@ -33,11 +33,10 @@ from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.signal import lfilter
 
 from bench.errors import PlanError
 from bench.signal.geometry import OrientationError, code_matrix, earth_rate_enu, validate_canonical_code
-from bench.sim.noise import STREAM_ACCEL, STREAM_FREQ, CorrelatedNoise, RandomStepLevels, WhiteNoise, stream_rng
+from bench.sim.noise import STREAM_ACCEL, STREAM_FREQ, CorrelatedNoise, first_order_recursion, RandomStepLevels, WhiteNoise, stream_rng
 from bench.sim.scenario import ChannelBias, ChannelNoise, Factor, Scenario, ThermalNetwork, parse_term
 
 _MAX_CHUNK = 200_000          # grid steps integrated per vectorised chunk (memory bound)
@@ -134,13 +133,24 @@ def _foh_step(lam: np.ndarray, dt: np.ndarray, z0: np.ndarray, w0: np.ndarray, w
 
 def _foh_filter(lam: np.ndarray, h: float, z0: np.ndarray, w0: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Propagate modes ``lam`` (m,) from state z0 over n steps of h with inputs w (n, m); w0 = input at z0."""
-    phi, c0, c1 = _foh_coeffs(lam, h)
+    phi, c0, c1 = _foh_coeffs_cached(lam, h)
     prev = np.vstack([w0[None, :], w[:-1]])
     x = c1 * w + c0 * prev
-    out = np.empty_like(x)
-    for j in range(lam.size):
-        out[:, j], _ = lfilter([1.0], [1.0, -phi[j]], x[:, j], zi=[phi[j] * z0[j]])
-    return out
+    return first_order_recursion(phi, x, z0)
+
+
+_FOH_CACHE: dict[tuple[bytes, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+
+def _foh_coeffs_cached(lam: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_foh_coeffs`` for a fixed grid step: the same few (modes, step) pairs on every instant."""
+    key = (lam.tobytes(), float(h))
+    hit = _FOH_CACHE.get(key)
+    if hit is None:
+        if len(_FOH_CACHE) > 64:
+            _FOH_CACHE.clear()
+        hit = _FOH_CACHE[key] = _foh_coeffs(lam, h)
+    return hit
 
 
 class ThermalModel:
@@ -397,6 +407,15 @@ class GyroPhysics:
             hyst[moved] = sign[moved] + (hyst[moved] - sign[moved]) * np.exp(-np.abs(r_mid[moved]) * dt[moved, 0] / hy.width_c)
         return Trajectory(times, batch, temps, rates, lag, lag_rates, hyst, base.corr[b].copy())
 
+    @staticmethod
+    def _on_grid(times: np.ndarray, traj: Trajectory) -> Trajectory | None:
+        """The rows of a just-integrated grid trajectory at ``times`` when every time is one of its
+        grid points (frames on the integration grid: nothing to interpolate), else None."""
+        idx = np.minimum(np.searchsorted(traj.times, times), traj.times.size - 1)
+        if not np.array_equal(traj.times[idx], times):
+            return None
+        return _select(traj, idx)
+
     def _committed(self) -> "_GridStates":
         st = self._state
         return _GridStates(np.array([st.t]), st.z[None, :], st.u[None, :], st.temps[None, :], st.lag[None, :],
@@ -453,7 +472,7 @@ class GyroPhysics:
             if eff.hysteresis and ch in eff.hysteresis.amplitude_dph:
                 col += eff.hysteresis.amplitude_dph[ch] * traj.hyst
             if eff.warmup and ch in eff.warmup.amplitude_dph:
-                col += eff.warmup.amplitude_dph[ch] * np.where(on, np.exp(-np.nan_to_num(t_on, nan=np.inf) / eff.warmup.tau_s), 0.0)
+                col += eff.warmup.amplitude_dph[ch] * np.where(on, np.exp(-np.where(np.isnan(t_on), np.inf, t_on) / eff.warmup.tau_s), 0.0)
             if eff.cross_channel_temperature and ch in eff.cross_channel_temperature:
                 cc = eff.cross_channel_temperature[ch]
                 src = self._own_idx[self.channels.index(cc.source_channel)]
@@ -490,7 +509,7 @@ class GyroPhysics:
                 for ch in self.channels])
             if sc.hrg.noise_hz > 0:
                 freq = freq + sc.hrg.noise_hz * self._rng_freq.standard_normal((n, 3))
-        valid = on & (np.nan_to_num(t_on, nan=-np.inf) >= sc.startup_invalid_s)
+        valid = on & (np.where(np.isnan(t_on), -np.inf, t_on) >= sc.startup_invalid_s)
         probes = {p: traj.temps[:, k] for p, k in self._probe_idx.items()}
         return Outputs(traj.times, rate, bias, accel, traj.temps[:, self._sensor_idx], probes, freq, valid, on, traj)
 
@@ -539,18 +558,25 @@ class GyroPhysics:
             base = self._committed()
             t_end = float(times[-1])
             n = int(math.floor((t_end - self._state.t) / self.h + 1e-9))
+            grid = None
             if 0 < n <= _MAX_CHUNK:
-                traj = self._advance_grid(n)
-                hy = self.scenario.effects.hysteresis
-                hyst_rate = traj.rates[:, self.node_index(hy.driver)] if hy else np.zeros(n)
-                base = base.extend(_GridStates(traj.times, traj.z, traj.u, traj.temps, traj.lag, traj.hyst,
-                                               hyst_rate, traj.corr))
+                grid = self._advance_grid(n)
             elif n > 0:                                  # a long jump: commit, then sample from the end
                 self.advance_to(t_end)
                 base = self._committed()
             self._t_now = max(self._t_now, t_end)
             ts = np.maximum(times, base.t[0])
-            out = self._outputs(self._between(ts, base), self.output_period_s)
+            traj = self._on_grid(ts, grid) if grid is not None else None
+            if traj is None:
+                if grid is not None:
+                    hy = self.scenario.effects.hysteresis
+                    hyst_rate = grid.rates[:, self.node_index(hy.driver)] if hy else np.zeros(n)
+                    base = base.extend(_GridStates(grid.times, grid.z, grid.u, grid.temps, grid.lag, grid.hyst,
+                                                   hyst_rate, grid.corr))
+                traj = self._between(ts, base)
+            if t_end == self._state.t:     # the state at the newest instant, for probe_temperatures
+                self._cache = (t_end, _select(traj, np.array([times.size - 1])))
+            out = self._outputs(traj, self.output_period_s)
             samples = []
             for k in range(times.size):
                 on = bool(out.powered[k])

@@ -150,6 +150,7 @@ class W1TreeSimulator(BackgroundLoop):
         self.last_update_t: float | None = None
         self._retained = {name: bytes(9) for name in self.probes}
         self._written: dict[str, str] = {}          # last w1_slave text written per probe
+        self._last_read: dict[str, tuple[bytes, bytes]] = {}   # (scratchpad, retained) behind that text
         self._lock = threading.Lock()
 
     def device_dir(self, name: str) -> Path:
@@ -200,6 +201,7 @@ class W1TreeSimulator(BackgroundLoop):
         if fault == FAULT_VANISHED:
             shutil.rmtree(directory, ignore_errors=True)
             self._written.pop(name, None)
+            self._last_read.pop(name, None)
             return
         current = {
             None: None,
@@ -210,10 +212,14 @@ class W1TreeSimulator(BackgroundLoop):
         }[fault]
         if current is None:
             current = good_scratchpad(celsius, self.resolution_bits)
+        read = (current, self._retained[name])
+        if self._last_read.get(name) == read and name in self._written and directory.is_dir():
+            return              # the same conversion result as the files already show
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
         if self._written.get(name) == text and directory.is_dir():
+            self._last_read[name] = read
             return              # same conversion result: the files already say exactly this
         directory.mkdir(parents=True, exist_ok=True)
         _atomic_write(directory / "w1_slave", text)
@@ -223,6 +229,7 @@ class W1TreeSimulator(BackgroundLoop):
         else:
             temperature_file.unlink(missing_ok=True)
         self._written[name] = text
+        self._last_read[name] = read
 
 
 def _atomic_write(path: Path, text: str) -> None:
