@@ -10,7 +10,7 @@ state; the bench workers (``bench.worker``) execute runs.  Run it with ``bench s
 """
 from __future__ import annotations
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from fastapi.responses import RedirectResponse
 
 from api import dashboard, problems
@@ -36,7 +36,8 @@ def create_app(db: Database | None = None, *, database_url: str | None = None,
         token_map = parse_tokens(tokens)
     else:
         token_map = dict(tokens)
-    app = FastAPI(title="Gyro bench operator API", version="1.0", description=DESCRIPTION)
+    app = FastAPI(title="Gyro bench operator API", version="1.0", description=DESCRIPTION,
+                  dependencies=[Depends(problems.reject_unknown_query)])
     app.state.db = db
     app.state.tokens = token_map
     app.state.stale_after_s = stale_after_s

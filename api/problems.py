@@ -122,6 +122,29 @@ _DESCRIPTIONS = {400: "The body is not valid JSON", 401: "No token, or an unknow
                  503: "Database unavailable (retry later)"}
 
 
+async def reject_unknown_query(request: Request) -> None:
+    """App-wide dependency: a query parameter the route does not declare is refused (422 naming it and
+    the ones the route takes) instead of being silently ignored.  Pages outside the API document (the
+    dashboard's) are left alone: their query strings belong to the page's script."""
+    route = request.scope.get("route")
+    dependant = getattr(route, "dependant", None)
+    if dependant is None or not request.query_params or not getattr(route, "include_in_schema", True):
+        return
+    known = _query_names(dependant)
+    unknown = sorted(set(request.query_params) - known)
+    if unknown:
+        raise Problem(422, "Invalid input", f"unknown query parameter(s) {', '.join(unknown)}; this request "
+                      f"takes: {', '.join(sorted(known)) or 'none'}")
+
+
+def _query_names(dependant) -> set[str]:
+    """Names of the query parameters a route takes, its dependencies' included."""
+    names = {p.alias for p in dependant.query_params}
+    for d in dependant.dependencies:
+        names |= _query_names(d)
+    return names
+
+
 def problem_codes(*codes: int) -> dict[str, Any]:
     """``openapi_extra`` of a route that answers these problem codes besides the ones found from its
     signature (see ``document_problems``)."""
@@ -152,8 +175,7 @@ def _route_codes(route) -> set[int]:
     d = route.dependant
     if d.path_params:
         codes |= {404, 422}
-    if d.query_params or d.body_params or d.header_params:
-        codes.add(422)
+    codes.add(422)                 # inputs, and an unknown query parameter on any route (reject_unknown_query)
     if d.body_params:
         codes.add(400)             # a body that is not JSON at all
     if get_db in calls:

@@ -207,7 +207,7 @@ def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fi
                         60, "resumed run finished")
         assert done["outcome"] == "completed", done
         assert done["progress_percent"] == pytest.approx(100.0) and frozen < 100
-        assert any(g["reason"] == "engine interrupted" for g in done["gaps"])
+        assert any(g["reason"] == "crash_resume" for g in done["gaps"])
         kinds = [e["kind"] for e in httpx.get(f"http://127.0.0.1:{port}/runs/{rid}/events", headers=VIEWER,
                                               timeout=10).json()["events"]]
         assert "worker_takeover" in kinds and "run_resumed" in kinds
