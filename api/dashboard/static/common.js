@@ -374,3 +374,15 @@ function filterBar(id, onApply) {
   el("button.secondary", { type: "button", on: { click: () => { for (const i of form.querySelectorAll("input")) i.value = ""; form.requestSubmit(); } } }, "Clear"));
   return form;
 }
+
+/* Make fit #id the gyro's accepted coefficients for its model (admin), then call reload(). */
+async function acceptFit(id, reload) {
+  if (!window.confirm(`Make fit #${id} the gyro's accepted coefficients for its model?`)) return;
+  try {
+    await api(`/fits/${id}/accept`, { method: "POST" });
+    showAlert(`Fit #${id} accepted.`, "ok");
+    reload();
+  } catch (err) {
+    reportError(err, `accept fit ${id}`);
+  }
+}

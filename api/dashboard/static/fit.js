@@ -40,15 +40,8 @@ function renderFit(doc) {
     metricsTable(doc.channels));
 }
 
-async function accept(id) {
-  if (!window.confirm(`Make fit #${id} the gyro's accepted coefficients for its model?`)) return;
-  try {
-    await api(`/fits/${id}/accept`, { method: "POST" });
-    showAlert(`Fit #${id} accepted.`, "ok");
-    load();
-  } catch (err) {
-    reportError(err, `accept fit ${id}`);
-  }
+function accept(id) {
+  return acceptFit(id, load);
 }
 
 async function loadReport() {

@@ -47,15 +47,8 @@ function renderCoefficients(doc) {
     el("p.muted", validityText(m.channels)))));
 }
 
-async function accept(fitId) {
-  if (!window.confirm(`Make fit #${fitId} this gyro's accepted coefficients for its model?`)) return;
-  try {
-    await api(`/fits/${fitId}/accept`, { method: "POST" });
-    showAlert(`Fit #${fitId} accepted.`, "ok");
-    load();
-  } catch (err) {
-    reportError(err, `accept fit ${fitId}`);
-  }
+function accept(id) {
+  return acceptFit(id, load);
 }
 
 function renderFits(doc) {
