@@ -78,27 +78,37 @@ def polled(step, who: str):
         return None
 
 
-class JobRunner:
+class LeaseHolder:
+    """What every polling worker that holds database leases has: its id, the heartbeat period and the
+    staleness limit of its leases (wall seconds), its poll period and its stop flag."""
+
+    def __init__(self, db: Database, worker_id: str, heartbeat_s: float, stale_after_s: float,
+                 poll_s: float) -> None:
+        if stale_after_s <= 2 * heartbeat_s:
+            raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
+        self.db = db
+        self.worker_id = worker_id
+        self.heartbeat_s = heartbeat_s
+        self.stale_after_s = stale_after_s
+        self.poll_s = poll_s
+        self._stop = threading.Event()
+
+    def stop(self) -> None:
+        """Stop claiming new work (what is under way goes on to its end)."""
+        self._stop.set()
+
+
+class JobRunner(LeaseHolder):
     """Claims and executes analysis jobs: ``run_one()`` does one job if any is due; ``run_forever()``
     loops until ``stop()``.  ``heartbeat_s`` / ``stale_after_s`` are wall seconds."""
 
     def __init__(self, db: Database, *, worker_id: str | None = None, heartbeat_s: float = 1.0,
                  stale_after_s: float = 15.0, poll_s: float = 0.5, max_attempts: int = MAX_ATTEMPTS,
                  hold_file: str | None = None) -> None:
-        if stale_after_s <= 2 * heartbeat_s:
-            raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
-        self.db = db
-        self.worker_id = worker_id or default_job_worker_id()
-        self.heartbeat_s = heartbeat_s
-        self.stale_after_s = stale_after_s
-        self.poll_s = poll_s
+        super().__init__(db, worker_id or default_job_worker_id(), heartbeat_s, stale_after_s, poll_s)
         self.max_attempts = max_attempts
         self.hold_file = hold_file
-        self._stop = threading.Event()
         self.done: list[tuple[int, str]] = []
-
-    def stop(self) -> None:
-        self._stop.set()
 
     def run_forever(self) -> None:
         log.info("job worker %s started", self.worker_id)

@@ -47,7 +47,7 @@ from bench.engine.factory import build_devices, close_devices, engine_config_for
 from bench.engine.lease import RunLease, fence_devices
 from bench.engine.sqlstore import SqlRunStore
 from bench.errors import BenchError, LeaseLost
-from bench.jobs import JobRunner, polled
+from bench.jobs import JobRunner, LeaseHolder, polled
 from bench.jsonsafe import jsonable
 from bench.storage import queries
 from bench.storage.db import Database
@@ -118,7 +118,7 @@ def default_worker_id(bench_name: str) -> str:
     return f"{bench_name}@{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:6]}"
 
 
-class Worker:
+class Worker(LeaseHolder):
     """Serves one bench: ``run_forever()`` claims and executes runs until ``stop()``.
 
     ``devices_factory(config) -> Devices`` opens the drivers for a run (closed after it; None = the real
@@ -135,22 +135,15 @@ class Worker:
                  heartbeat_s: float = 1.0, stale_after_s: float = 15.0, poll_s: float = 0.5,
                  accept_fits: bool = True, writer_options: dict[str, Any] | None = None,
                  run_jobs: bool = True, bench_state: Any = None) -> None:
-        if stale_after_s <= 2 * heartbeat_s:
-            raise ValueError(f"stale_after_s ({stale_after_s}) must exceed twice heartbeat_s ({heartbeat_s})")
-        self.db = db
+        super().__init__(db, worker_id or default_worker_id(bench_name), heartbeat_s, stale_after_s, poll_s)
         self.bench_name = bench_name
         self.config = config
         self.devices_factory = devices_factory or (lambda cfg: build_devices(cfg, clock))
         self.clock = clock
         self.bench_state = bench_state
         self.engine_config = engine_config or engine_config_for(clock)
-        self.worker_id = worker_id or default_worker_id(bench_name)
-        self.heartbeat_s = heartbeat_s
-        self.stale_after_s = stale_after_s
-        self.poll_s = poll_s
         self.accept_fits = accept_fits
         self.writer_options = writer_options
-        self._stop = threading.Event()
         # between runs the worker executes analysis jobs (fits, close-the-loop, reports) under their own
         # leases; run_jobs=False leaves them to `bench worker --analysis`
         self.jobs = JobRunner(db, worker_id=f"{self.worker_id}/jobs", heartbeat_s=heartbeat_s,
@@ -163,10 +156,6 @@ class Worker:
             queries.ensure_bench(s, bench_name, _config_doc(config))
 
     # ---- lifecycle ----------------------------------------------------------------------------
-    def stop(self) -> None:
-        """Stop claiming new runs (the current run, if any, goes on to its end)."""
-        self._stop.set()
-
     def run_forever(self) -> None:
         log.info("worker %s serving bench %s", self.worker_id, self.bench_name)
         try:
