@@ -347,6 +347,12 @@ def _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range) -> dict[str, float]:
     return out
 
 
+def _cv_text(cv_gain) -> str:
+    if isinstance(cv_gain, (int, float)) and np.isfinite(cv_gain):
+        return f"cross-validated error -{100 * cv_gain:.0f} %"
+    return "cross-validation not applicable (the effect lies within one training segment)"
+
+
 def _findings(r: dict[str, Any]) -> str:
     b, a = r["before"], r["after"]
     fl = r["noise_floor"]
@@ -373,7 +379,8 @@ def _findings(r: dict[str, Any]) -> str:
         ev = e["evidence"]
         lines.append(f"{i}. Added {e['kind']}" + (f" ({params})" if params else "") +
                      f" on training evidence: delta-BIC {ev['delta_bic']:.1f}, HAC Wald p {ev['hac_wald_p']:.2g}, "
-                     f"cross-validated error -{100 * ev['cv_gain']:.0f} %; confirmed on validation "
+                     + _cv_text(ev.get("cv_gain"))
+                     + "; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
         runner = ev.get("runner_up")
         if runner and ev.get("bic_margin_to_runner_up") is not None and ev["bic_margin_to_runner_up"] < 6.0:
