@@ -42,3 +42,16 @@ def pg_url():
             {"n": name})
         conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}"'))
     admin.dispose()
+
+
+@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
+def db(request, tmp_path):
+    """An empty database per test: a SQLite file, or an own schema in the session's PostgreSQL database."""
+    from bench.storage import open_database
+
+    if request.param == "sqlite":
+        database = open_database(f"sqlite:///{tmp_path / 'test.sqlite'}")
+    else:
+        database = open_database(request.getfixturevalue("pg_url"), schema=f"t_{uuid.uuid4().hex[:8]}")
+    yield database
+    database.dispose()

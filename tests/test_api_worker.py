@@ -6,25 +6,14 @@ from __future__ import annotations
 import datetime as dt
 import json
 import time
-import uuid
 
 import pytest
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from bench.storage import open_database
 from tests.api_support import (OPERATOR, SHORT_RAMP, TOKENS, VIEWER, DoublesBench, register_bench, start_worker,
                                unique_bench, wait_for)
 
-
-@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
-def db(request, tmp_path):
-    if request.param == "sqlite":
-        database = open_database(f"sqlite:///{tmp_path / 'w.sqlite'}")
-    else:
-        database = open_database(request.getfixturevalue("pg_url"), schema=f"t_{uuid.uuid4().hex[:8]}")
-    yield database
-    database.dispose()
 
 
 def run_doc(c, rid):

@@ -10,25 +10,14 @@ the test waits on states (takeover, completion), never on a duration.
 from __future__ import annotations
 
 import threading
-import uuid
 
-import pytest
 from sqlalchemy import select
 
-from bench.storage import open_database, queries
+from bench.storage import queries
 from bench.storage.models import Event, FrameChunk
 from bench.engine import Devices
 from tests.api_support import SHORT_RAMP, DoublesBench, register_bench, start_worker, unique_bench, wait_for
 
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def db(request, tmp_path):
-    if request.param == "sqlite":
-        database = open_database(f"sqlite:///{tmp_path / 'fence.sqlite'}")
-    else:
-        database = open_database(request.getfixturevalue("pg_url"), schema=f"t_{uuid.uuid4().hex[:8]}")
-    yield database
-    database.dispose()
 
 
 class Freezer:

@@ -20,17 +20,6 @@ from bench.storage.models import FrameChunk, ProbeReadingRow, Run, Segment, Tele
 runner = CliRunner()
 
 
-@pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
-def db(request, tmp_path):
-    """An empty database per test: a SQLite file, or an own schema in the session's PostgreSQL database."""
-    if request.param == "sqlite":
-        database = open_database(f"sqlite:///{tmp_path / 'drills.sqlite'}")
-    else:
-        import uuid
-        database = open_database(request.getfixturevalue("pg_url"), schema=f"drill_{uuid.uuid4().hex[:8]}")
-    yield database
-    database.dispose()
-
 
 def _nothing_stored(db) -> None:
     with db.session() as s:
