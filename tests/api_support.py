@@ -3,8 +3,6 @@ device doubles of tests/test_engine_doubles.py on an accelerated clock, an in-pr
 from __future__ import annotations
 
 import itertools
-import threading
-import time
 import uuid
 from typing import Any
 
@@ -12,6 +10,7 @@ from bench.clock import AcceleratedClock
 from bench.config import BenchConfig, TurntableConfig
 from bench.devices.orientation import EIGHT_POSITION_GEOMETRY
 from bench.engine import Devices, EngineConfig
+from tests.service_support import wait_for  # noqa: F401 - the tests' one wait helper
 from tests.test_engine_doubles import DoubleChamber, DoubleLink, DoubleProbes, DoublePsu, DoubleTable, Thermal
 
 TOKENS = {"viewer-token-1": "viewer", "operator-token-1": "operator", "admin-token-1": "admin"}
@@ -64,17 +63,6 @@ def start_worker(db, name: str, doubles: DoublesBench, **kw: Any):
     return w, t
 
 
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.05):
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = predicate()
-        if last:
-            return last
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
-
-
 def register_bench(db, name: str) -> None:
     import json
 
@@ -82,5 +70,3 @@ def register_bench(db, name: str) -> None:
     with db.session() as s:
         queries.ensure_bench(s, name, json.loads(bench_config(name).model_dump_json()))
 
-
-_lock = threading.Lock()

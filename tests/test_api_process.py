@@ -13,78 +13,30 @@ tests/test_api_serve.py runs ``bench serve`` (API + worker + simulated bench in 
 from __future__ import annotations
 
 import json
-import os
 import signal
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER, wait_for
+from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS_TEXT, VIEWER
+from tests.service_support import PY, Services, hold_bench_at
 
-ROOT = Path(__file__).resolve().parents[1]
-PY = sys.executable
 T0 = 1_767_225_600.0          # the bench instant the worker's lockstep clock starts at
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _services(db_url: str, tmp: Path) -> Services:
+    return Services(tmp, BENCH_DATABASE_URL=db_url, BENCH_TOKENS=TOKENS_TEXT, BENCH_STALE_AFTER_S="1.5")
 
 
-class Procs:
-    def __init__(self, db_url: str, tmp: Path) -> None:
-        self.env = {**os.environ, "BENCH_DATABASE_URL": db_url, "BENCH_TOKENS": TOKENS_TEXT,
-                    "BENCH_STALE_AFTER_S": "1.5",
-                    "PYTHONPATH": str(ROOT)}
-        self.tmp = tmp
-        self.procs: list[subprocess.Popen] = []
-
-    def spawn(self, args: list[str], log: str) -> subprocess.Popen:
-        out = open(self.tmp / log, "ab")
-        p = subprocess.Popen(args, cwd=self.tmp, env=self.env, stdout=out, stderr=subprocess.STDOUT)
-        self.procs.append(p)
-        return p
-
-    def api(self, port: int) -> subprocess.Popen:
-        p = self.spawn([PY, "-m", "uvicorn", "--factory", "api.app:app_from_env", "--host", "127.0.0.1",
-                        "--port", str(port), "--log-level", "warning"], "api.log")
-        wait_for(lambda: _health(port), 20, "API up", interval=0.1)
-        return p
-
-    def kill(self, p: subprocess.Popen) -> None:
-        p.send_signal(signal.SIGKILL)
-        p.wait(timeout=10)
-
-    def close(self) -> None:
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+def _doubles_worker(services: Services, bench: str, clock: dict) -> subprocess.Popen:
+    return services.spawn([PY, "-m", "tests.test_api_process", "worker", bench, json.dumps(clock)], "worker.log")
 
 
-def _health(port: int) -> bool:
-    try:
-        return httpx.get(f"http://127.0.0.1:{port}/health", timeout=1).status_code == 200
-    except httpx.HTTPError:
-        return False
-
-
-def _doubles_worker(p: Procs, bench: str, clock: dict) -> subprocess.Popen:
-    return p.spawn([PY, "-m", "tests.test_api_process", "worker", bench, json.dumps(clock)], "worker.log")
-
-
-def _get(port: int, rid: int) -> dict:
-    r = httpx.get(f"http://127.0.0.1:{port}/runs/{rid}", headers=VIEWER, timeout=5)
+def _get(base: str, rid: int) -> dict:
+    r = httpx.get(f"{base}/runs/{rid}", headers=VIEWER, timeout=30)
     assert r.status_code == 200, r.text
     return r.json()
 
@@ -130,12 +82,9 @@ def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
     db.dispose()
     hold = tmp_path / "hold"
     clock = LockstepClock(T0, 150.0, hold_file=str(hold)).to_json()
-    p = Procs(db_url, tmp_path)
-    start = lambda: _doubles_worker(p, "proc1", clock)    # noqa: E731
-    try:
-        _kill_and_resume(p, db_url, start, SHORT_RAMP, check_fit=True, hold=hold)
-    finally:
-        p.close()
+    with _services(db_url, tmp_path) as services:
+        _kill_and_resume(services, db_url, lambda: _doubles_worker(services, "proc1", clock), SHORT_RAMP,
+                         check_fit=True, hold=hold)
 
 
 @pytest.mark.postgres
@@ -150,72 +99,55 @@ def test_kill_api_then_worker_mid_run_postgres_doubles(pg_db_url, tmp_path):
     db.dispose()
     hold = tmp_path / "hold"
     clock = LockstepClock(T0, 150.0, hold_file=str(hold)).to_json()
-    p = Procs(pg_db_url, tmp_path)
-    try:
-        _kill_and_resume(p, pg_db_url, lambda: _doubles_worker(p, "proc1", clock), SHORT_RAMP, check_fit=True,
-                         hold=hold)
-    finally:
-        p.close()
+    with _services(pg_db_url, tmp_path) as services:
+        _kill_and_resume(services, pg_db_url, lambda: _doubles_worker(services, "proc1", clock), SHORT_RAMP,
+                         check_fit=True, hold=hold)
 
 
-def _hold_at(hold: Path, t: float) -> None:
-    """Let the worker's bench time run to ``t`` and wait until it stands there."""
-    tmp = hold.with_suffix(".tmp")
-    tmp.write_text(repr(t))
-    tmp.replace(hold)
-    marker = Path(str(hold) + ".held")
-    wait_for(lambda: marker.exists() and float(marker.read_text()) == t, 60, f"bench time held at {t}",
-             interval=0.05)
-
-
-def _kill_and_resume(p: Procs, db_url: str, start_worker, params: dict, check_fit: bool, hold: Path) -> None:
-    if True:
-        _hold_at_later = T0 + 200.0             # about a third into the short ramp run (~700 bench s)
-        hold.write_text(repr(_hold_at_later))
-        port = free_port()
-        api = p.api(port)
-        worker = start_worker()
-        wait_for(lambda: httpx.get(f"http://127.0.0.1:{port}/benches/proc1", headers=VIEWER,
-                                   timeout=5).json().get("online"), 30, "worker online", interval=0.1)
-        body = {"procedure": "thermal_ramp", "gyro_id": "RLG-P", "bench": "proc1", "params": params}
-        r = httpx.post(f"http://127.0.0.1:{port}/runs", json=body, headers=OPERATOR, timeout=10)
-        assert r.status_code == 201, r.text
-        rid = r.json()["id"]
-        _hold_at(hold, _hold_at_later)
-        wait_for(lambda: (_db_run(db_url, rid)[1] or 0) > 0.03, 20, "progress published at the hold")
-        # 1. the API dies: the run goes on (bench time moves on to a second hold)
-        p.kill(api)
-        before = _db_run(db_url, rid)[1]
-        _hold_at(hold, T0 + 350.0)
-        wait_for(lambda: _db_run(db_url, rid)[1] > before, 20, "progress after the API died")
-        status, after, *_ = _db_run(db_url, rid)
-        assert status == "running" and after > before
-        port = free_port()
-        p.api(port)
-        doc = _get(port, rid)
-        assert doc["status"] == "running" and doc["worker_alive"]
-        # 2. the worker dies (kill -9) while held mid-run: the run is left running with a stale heartbeat
-        p.kill(worker)
-        stuck = wait_for(lambda: (d := _get(port, rid))["worker_alive"] is False and d, 10, "stale heartbeat")
-        assert stuck["progress_percent"] < 100
-        assert stuck["status"] in ("running", "paused", "suspended")
-        frozen = stuck["progress_percent"]
-        # a worker for the bench returns (no hold): it takes the run over and resumes it
-        hold.unlink()
-        start_worker()
-        done = wait_for(lambda: (d := _get(port, rid))["status"] in ("completed", "failed", "aborted") and d,
-                        60, "resumed run finished")
-        assert done["outcome"] == "completed", done
-        assert done["progress_percent"] == pytest.approx(100.0) and frozen < 100
-        assert any(g["reason"] == "crash_resume" for g in done["gaps"])
-        kinds = [e["kind"] for e in httpx.get(f"http://127.0.0.1:{port}/runs/{rid}/events", headers=VIEWER,
-                                              timeout=10).json()["events"]]
-        assert "worker_takeover" in kinds and "run_resumed" in kinds
-        if check_fit:
-            assert done["fits"] and list(done["fits"].values())[-1]["status"] == "done", done["fits"]
-            coeffs = httpx.get(f"http://127.0.0.1:{port}/gyros/RLG-P/coefficients", headers=VIEWER,
-                               timeout=10).json()
-            assert coeffs["models"][0]["model"] == "dynamic" and coeffs["models"][0]["run_ids"] == [rid]
+def _kill_and_resume(services: Services, db_url: str, start_worker, params: dict, check_fit: bool,
+                     hold: Path) -> None:
+    hold.write_text(repr(T0 + 200.0))           # about a third into the short ramp run (~700 bench s)
+    api, base = services.api()
+    worker = start_worker()
+    services.wait_for(lambda: httpx.get(f"{base}/benches/proc1", headers=VIEWER, timeout=30).json().get("online"),
+                      "worker online", worker, interval=0.1)
+    body = {"procedure": "thermal_ramp", "gyro_id": "RLG-P", "bench": "proc1", "params": params}
+    r = httpx.post(f"{base}/runs", json=body, headers=OPERATOR, timeout=30)
+    assert r.status_code == 201, r.text
+    rid = r.json()["id"]
+    log = services.log_of(worker)
+    hold_bench_at(hold, T0 + 200.0, proc=worker, log=log)
+    services.wait_for(lambda: (_db_run(db_url, rid)[1] or 0) > 0.03, "progress published at the hold", worker)
+    # 1. the API dies: the run goes on (bench time moves on to a second hold)
+    services.kill(api)
+    before = _db_run(db_url, rid)[1]
+    hold_bench_at(hold, T0 + 350.0, proc=worker, log=log)
+    services.wait_for(lambda: _db_run(db_url, rid)[1] > before, "progress after the API died", worker)
+    status, after, *_ = _db_run(db_url, rid)
+    assert status == "running" and after > before
+    _, base = services.api()
+    doc = _get(base, rid)
+    assert doc["status"] == "running" and doc["worker_alive"]
+    # 2. the worker dies (kill -9) while held mid-run: the run is left running with a stale heartbeat
+    services.kill(worker)
+    stuck = services.wait_for(lambda: (d := _get(base, rid))["worker_alive"] is False and d, "stale heartbeat")
+    assert stuck["progress_percent"] < 100
+    assert stuck["status"] in ("running", "paused", "suspended")
+    frozen = stuck["progress_percent"]
+    # a worker for the bench returns (no hold): it takes the run over and resumes it
+    hold.unlink()
+    worker = start_worker()
+    done = services.wait_for(lambda: (d := _get(base, rid))["status"] in ("completed", "failed", "aborted") and d,
+                             "resumed run finished", worker)
+    assert done["outcome"] == "completed", done
+    assert done["progress_percent"] == pytest.approx(100.0) and frozen < 100
+    assert any(g["reason"] == "crash_resume" for g in done["gaps"])
+    kinds = [e["kind"] for e in httpx.get(f"{base}/runs/{rid}/events", headers=VIEWER, timeout=30).json()["events"]]
+    assert "worker_takeover" in kinds and "run_resumed" in kinds
+    if check_fit:
+        assert done["fits"] and list(done["fits"].values())[-1]["status"] == "done", done["fits"]
+        coeffs = httpx.get(f"{base}/gyros/RLG-P/coefficients", headers=VIEWER, timeout=30).json()
+        assert coeffs["models"][0]["model"] == "dynamic" and coeffs["models"][0]["run_ids"] == [rid]
 
 
 def _doubles_worker_main(bench: str, clock_json: str) -> None:

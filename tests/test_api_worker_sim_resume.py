@@ -11,6 +11,7 @@ import time
 from bench.sim.bench import SimulatedBench
 from bench.storage import open_database, queries
 from tests.api_support import SHORT_RAMP
+from tests.service_support import SAFETY_S
 
 
 def _worker(tmp, env):
@@ -32,7 +33,7 @@ def test_killed_worker_on_the_simulated_bench_is_taken_over_and_the_run_complete
         with db.session() as s:
             rid = queries.create_run(s, procedure="thermal_ramp", bench_name="simk", gyro_id="SIMK",
                                      parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.1)).id
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + SAFETY_S
         while time.monotonic() < deadline:                 # wait until it is running with frames stored
             with db.session() as s:
                 run = queries.get_run(s, rid)
@@ -44,7 +45,7 @@ def test_killed_worker_on_the_simulated_bench_is_taken_over_and_the_run_complete
         first.send_signal(signal.SIGKILL)
         first.wait()
         second = _worker(tmp_path, env)
-        deadline = time.monotonic() + 90
+        deadline = time.monotonic() + SAFETY_S
         while time.monotonic() < deadline:
             with db.session() as s:
                 run = queries.get_run(s, rid)

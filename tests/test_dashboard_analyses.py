@@ -13,33 +13,20 @@ Screenshots go to ``test-artifacts/dashboard/``.
 from __future__ import annotations
 
 import datetime as dt
-import json
-import os
-import subprocess
-import sys
-import time
-import urllib.request
-from pathlib import Path
 
 import pytest
 
+from tests.browser_support import (ARTIFACTS, T0, TOKENS, chromium_context, dashboard_service, get_json, post_json,
+                                   shot, use_token)
+from tests.service_support import SAFETY_S, wait_for
 from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
-from tests.test_dashboard_browser import (ARTIFACTS, CHROMIUM, CHROMIUM_ARGS, TOKENS, _free_port, _get_json, shot,
-                                          use_token)
 
-REPO = Path(__file__).resolve().parents[1]
-SPEED = 120.0
+# bench time: soak 72 s, warm-up 60 s, ramp 30 -> 12 C at 1 C/min from about T0 + 132 s to T0 + 1212 s,
+# hold 120 s; the run page is read at two instants of the ramp, each just after a checkpoint (every 120
+# bench s: the progress stored on the bench-time schedule)
 RAMP = {"orientation": None, "start_c": 30.0, "soak_h": 0.02, "warmup_min": 1.0, "rate_c_per_min": 1.0,
         "end_c": 12.0, "final_hold_min": 2.0}
-
-pytestmark = pytest.mark.timeout(240)
-
-
-def _post(url: str, body: dict, token: str, timeout: float = 60.0):
-    req = urllib.request.Request(url, data=json.dumps(body).encode(), method="POST",
-                                 headers={"Authorization": f"Bearer {token}", "Content-Type": "application/json"})
-    with urllib.request.urlopen(req, timeout=timeout) as r:
-        return json.loads(r.read())
+READ_AT = (T0 + 750.0, T0 + 1150.0)
 
 
 @pytest.fixture(scope="module")
@@ -59,46 +46,14 @@ def service(tmp_path_factory):
                           import_dataset(db, val, gyro, source="val.csv"))
     finally:
         db.dispose()
-    port = _free_port()
-    env = dict(os.environ, BENCH_DATABASE_URL=url, PYTHONUNBUFFERED="1",
-               BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items()))
-    log = open(tmp / "serve.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "bench.cli", "serve", "--port", str(port), "--speed", str(SPEED),
-                             "--log-level", "warning"], cwd=str(REPO), env=env, stdout=log, stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            assert proc.poll() is None, (tmp / "serve.log").read_text()[-3000:]
-            try:
-                benches = _get_json(f"{base}/benches", TOKENS["viewer"], timeout=2)["benches"]
-                if benches and benches[0]["online"]:
-                    break
-            except OSError:
-                pass
-            assert time.monotonic() < deadline, (tmp / "serve.log").read_text()[-3000:]
-            time.sleep(0.2)
-        yield base, runs
-    finally:
-        proc.terminate()
-        proc.wait(15)
-        log.close()
+    with dashboard_service(tmp, url, hold_at=READ_AT[0]) as dash:
+        yield dash, runs
 
 
 @pytest.fixture(scope="module")
 def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} is missing: apt-get install -y chromium (scripts/install.sh)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-        context = b.new_context(viewport={"width": 1400, "height": 900})
-        try:
-            yield context
-        finally:
-            context.close()
-            b.close()
+    with chromium_context({"width": 1400, "height": 900}) as context:
+        yield context
 
 
 def _page(browser, service_base, path, errors):
@@ -110,18 +65,17 @@ def _page(browser, service_base, path, errors):
 
 
 def test_fit_and_close_loop_lists_filter_and_show_tables(service, browser):
-    base, runs = service
+    dash, runs = service
+    base = dash.base
     op = TOKENS["operator"]
     (a_train, a_val), (b_train, b_val) = runs["GYRO-A"], runs["GYRO-B"]
     for model, (train, val) in (("static", (a_train, a_val)), ("dynamic", (a_train, a_val)), ("static", (b_train, b_val))):
-        _post(f"{base}/fits", {"model": model, "run_ids": [train], "validation_run_ids": [val], "channels": ["x"]}, op)
-    analyses = [_post(f"{base}/close-loop", {"model": "static", "train_run_id": t, "validation_run_id": v,
+        post_json(f"{base}/fits", {"model": model, "run_ids": [train], "validation_run_ids": [val], "channels": ["x"]}, op)
+    analyses = [post_json(f"{base}/close-loop", {"model": "static", "train_run_id": t, "validation_run_id": v,
                                              "channels": ["x"]}, op)["id"]
                 for t, v in ((a_train, a_val), (b_train, b_val))]
-    deadline = time.monotonic() + 150
-    while not all(_get_json(f"{base}/close-loop/{i}", op)["status"] in ("done", "failed") for i in analyses):
-        assert time.monotonic() < deadline, "close-the-loop analyses did not finish"
-        time.sleep(1)
+    wait_for(lambda: all(get_json(f"{base}/close-loop/{i}", op)["status"] in ("done", "failed") for i in analyses),
+             SAFETY_S, "the close-the-loop analyses to end", interval=0.5)
     today = dt.datetime.now(dt.timezone.utc).date()
 
     errors: list[str] = []
@@ -166,9 +120,9 @@ def test_fit_and_close_loop_lists_filter_and_show_tables(service, browser):
     assert '{"' not in text and "ΔBIC" in text
     shot(page, "12-close-loop-analysis")
     page.click("#load-report")
-    page.wait_for_selector("#cl-report-frame", timeout=120_000)
+    page.wait_for_selector("#cl-report-frame")
     frame = page.frame_locator("#cl-report-frame")
-    frame.locator("img").first.wait_for(timeout=60_000)
+    frame.locator("img").first.wait_for()
     assert frame.locator("img").count() >= 6
     # full width: every plot spans the report's width (minus its margins)
     widths = frame.locator("body").evaluate("""(body) => [...body.querySelectorAll('img')].map(
@@ -179,33 +133,34 @@ def test_fit_and_close_loop_lists_filter_and_show_tables(service, browser):
 
 
 def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
-    base, _ = service
-    run = _post(f"{base}/runs", {"procedure": "thermal_ramp", "gyro_id": "GYRO-RUN", "bench": "sim1", "params": RAMP},
-                TOKENS["operator"])
+    dash, _ = service
+    base = dash.base
+    run = post_json(f"{base}/runs", {"procedure": "thermal_ramp", "gyro_id": "GYRO-RUN", "bench": "sim1",
+                                     "params": RAMP}, TOKENS["operator"])
     errors: list[str] = []
     page = _page(browser, base, f"/ui/runs/{run['id']}", errors)
-    page.wait_for_function("() => document.getElementById('run-status').textContent === 'running'", timeout=30_000)
+    dash.hold_at(READ_AT[0])           # bench time stands still while the page is read
+    page.wait_for_function("() => document.getElementById('run-status').textContent === 'running'")
 
     def sample():
         span = page.locator("#total-bench")
         e, r = float(span.get_attribute("data-elapsed") or "nan"), float(span.get_attribute("data-remaining") or "nan")
         return e, r, span.text_content()
 
-    page.wait_for_function("() => Number(document.getElementById('total-bench').dataset.elapsed) > 600",
-                           timeout=60_000)
+    page.wait_for_function("() => Number(document.getElementById('total-bench').dataset.elapsed) > 600")
     # the gyro's latest 1-s mean in deg/h, as the plot shows it (not "–, –, –")
     page.wait_for_function("() => /Gyro 1-s mean\\s*-?[0-9][^–]*\\(deg\\/h\\)/.test("
-                           "document.getElementById('latest').textContent)", timeout=30_000)
+                           "document.getElementById('latest').textContent)")
     e1, r1, _ = sample()
-    page.wait_for_function(f"() => Number(document.getElementById('total-bench').dataset.elapsed) > {e1 + 300}",
-                           timeout=60_000)
+    dash.hold_at(READ_AT[1])
+    page.wait_for_function(f"() => Number(document.getElementById('total-bench').dataset.elapsed) > {e1 + 300}")
     e2, r2, text = sample()
     assert e2 > e1 and r2 < r1, (e1, r1, e2, r2)          # the remaining time shrinks as time elapses
     assert "%" not in page.text_content("#live")           # one progress figure: the bar
     page.wait_for_function("() => (document.getElementById('plot-chamber').dataset.series || '')"
-                           ".includes('set point (ramping)')", timeout=60_000)
+                           ".includes('set point (ramping)')")
     # the ramping set point follows the ramp: it went down from 30 C towards 12 C, as the air did
-    cols = _get_json(f"{base}/runs/{run['id']}/data?stream=seconds&format=json", TOKENS["viewer"])["columns"]
+    cols = get_json(f"{base}/runs/{run['id']}/data?stream=seconds&format=json", TOKENS["viewer"])["columns"]
     pairs = [(sp, pv) for sp, pv in zip(cols["chamber_ramp_sp"], cols["chamber_pv"]) if sp is not None and pv is not None]
     ramp_sp = [sp for sp, _ in pairs]
     assert max(ramp_sp) - min(ramp_sp) > 5 and len(set(round(v, 1) for v in ramp_sp)) > 5, ramp_sp[::50]
@@ -234,8 +189,9 @@ def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
     shot(page, "14-run-page-zoomed")
     plot.dblclick()
     page.wait_for_function("() => document.getElementById('plot-chamber').dataset.view === ''")
+    dash.release()                     # the rest of the run as fast as the host can
     page.wait_for_function("() => ['completed', 'aborted', 'failed'].includes("
-                           "document.getElementById('run-status').textContent)", timeout=60_000)
+                           "document.getElementById('run-status').textContent)")
     assert page.text_content("#run-status") == "completed", page.text_content("#summary")
     e3, r3, _ = sample()
     assert r3 == 0.0 and e3 >= e2

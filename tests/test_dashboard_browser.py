@@ -1,120 +1,42 @@
-"""The operator dashboard in headless Chromium (Debian ``chromium`` driven by PyPI ``playwright``, never
-``playwright install``) against the real service: ``bench serve`` (API + one worker on the simulated
-bench at high speed) in a subprocess on 127.0.0.1, on an SQLite file in a temp dir.
+"""The operator dashboard in headless Chromium against the real service: ``bench serve`` (API + one
+worker on the seeded simulated bench in lockstep, as fast as the host can) in a subprocess on
+127.0.0.1, on an SQLite file in a temp dir (tests/browser_support.py starts both).
 
 The operator enters tokens (a wrong one, then a viewer's: both refused with a clear message), starts
 a thermal ramp from the procedure form (defaults from GET /procedures), watches its progress move and
-its plots fill, stops it; starts a short ramp that runs to its end (fitting the dynamic model), looks
-up the gyro's coefficients and opens the fit report.  Screenshots go to ``test-artifacts/dashboard/``.
+its plots fill while the bench time is held at two known instants of its soak, stops it; starts a
+short ramp that runs to its end (fitting the dynamic model), looks up the gyro's coefficients and
+opens the fit report.  Screenshots go to ``test-artifacts/dashboard/``.
 """
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import socket
-import subprocess
-import sys
 import time
-import urllib.request
-from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-ARTIFACTS = REPO / "test-artifacts" / "dashboard"
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-                 "--disable-quic", "--disable-component-update", "--disable-sync"]
-TOKENS = {"viewer": "viewer-dash-token", "operator": "operator-dash-token", "admin": "admin-dash-token"}
-SPEED = 120.0                 # bench seconds per wall second
+from tests.browser_support import T0, TOKENS, chromium_context, dashboard_service, shot, use_token
+
 GYRO = "RLG-DASH-1"
-# bench time: soak 72 s + warm-up 180 s + ramp 30 -> 24 C at 2 C/min 180 s + hold 180 s, about 10 s of wall
-# time; the dynamic model's rate terms need recorded stretches several rate windows long
+# bench time: soak 72 s + warm-up 180 s + ramp 30 -> 24 C at 2 C/min 180 s + hold 180 s; the dynamic
+# model's rate terms need recorded stretches several rate windows long
 SHORT_RAMP = {"orientation": "", "start_c": "30", "soak_h": "0.02", "warmup_min": "3", "rate_c_per_min": "2", "end_c": "24",
               "final_hold_min": "3"}
 LONG_SOAK = {"orientation": "", "start_c": "30", "soak_h": "2", "warmup_min": "1", "rate_c_per_min": "3", "end_c": "27",
              "final_hold_min": "1"}
-
-pytestmark = pytest.mark.timeout(120)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _get_json(url: str, token: str | None = None, timeout: float = 5.0):
-    req = urllib.request.Request(url, headers={"Authorization": f"Bearer {token}"} if token else {})
-    with urllib.request.urlopen(req, timeout=timeout) as r:
-        return json.loads(r.read())
+# the first run (LONG_SOAK, from T0) is watched at these two bench instants of its two-hour soak
+WATCH_AT = (T0 + 600.0, T0 + 1200.0)
 
 
 @pytest.fixture(scope="module")
 def service(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("dash")
-    port = _free_port()
-    env = dict(os.environ, BENCH_DATABASE_URL=f"sqlite:///{tmp / 'bench.sqlite'}",
-               BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items()), PYTHONUNBUFFERED="1")
-    log = open(tmp / "serve.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "bench.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-                             "--speed", str(SPEED), "--log-level", "warning"],
-                            cwd=str(REPO), env=env, stdout=log, stderr=subprocess.STDOUT)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 30
-        while True:
-            if proc.poll() is not None:
-                pytest.fail(f"bench serve exited with {proc.returncode}: {(tmp / 'serve.log').read_text()[-3000:]}")
-            try:
-                benches = _get_json(f"{base}/benches", TOKENS["viewer"], timeout=2)["benches"]
-                if benches and benches[0]["online"]:
-                    break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"bench serve not ready with an online bench after 30 s: "
-                            f"{(tmp / 'serve.log').read_text()[-3000:]}")
-            time.sleep(0.2)
-        yield base
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(5)
-        log.close()
-        shutil.copy(tmp / "serve.log", ARTIFACTS / "serve.log") if ARTIFACTS.exists() else None
+    with dashboard_service(tmp_path_factory.mktemp("dash"), hold_at=WATCH_AT[0]) as dash:
+        yield dash
 
 
 @pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"{CHROMIUM} is missing: apt-get install -y chromium chromium-driver (scripts/install.sh)")
-    from playwright.sync_api import sync_playwright
-
-    profile = tmp_path_factory.mktemp("chromium-profile")
-    with sync_playwright() as pw:
-        context = pw.chromium.launch_persistent_context(str(profile), executable_path=CHROMIUM, args=CHROMIUM_ARGS,
-                                                        headless=True, viewport={"width": 1280, "height": 900})
-        try:
-            yield context
-        finally:
-            context.close()
-
-
-def shot(page, name: str) -> None:
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
-
-
-def use_token(page, token: str) -> None:
-    if page.locator("#token-form").is_hidden():
-        page.click("#token-change")
-    page.fill("#token-input", token)
-    page.click("#token-save")
+def browser():
+    with chromium_context({"width": 1280, "height": 900}) as context:
+        yield context
 
 
 def fill_form(page, procedure: str, params: dict[str, str]) -> None:
@@ -124,9 +46,9 @@ def fill_form(page, procedure: str, params: dict[str, str]) -> None:
         page.fill(f"#param-{name}", value)
 
 
-def wait_status(page, statuses: tuple[str, ...], timeout_s: float) -> str:
+def wait_status(page, statuses: tuple[str, ...]) -> str:
     page.wait_for_function("(wanted) => wanted.includes(document.getElementById('run-status').textContent)",
-                           arg=list(statuses), timeout=timeout_s * 1000)
+                           arg=list(statuses))
     return page.text_content("#run-status")
 
 
@@ -147,7 +69,8 @@ def mark(label: str, t0: float) -> None:
     print(f"[dashboard test] {time.monotonic() - t0:6.1f} s  {label}")
 
 
-def operator_session(service: str, page) -> None:
+def operator_session(dash, page) -> None:
+    service = dash.base
     t_start = time.monotonic()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
@@ -191,26 +114,29 @@ def operator_session(service: str, page) -> None:
     page.wait_for_selector("#alert.error")
     assert "422" in page.text_content("#alert") and "QQQ" in page.text_content("#alert"), page.text_content("#alert")
 
-    # --- start a run with a long soak from the form; watch progress move; stop it
+    # --- start a run with a long soak from the form; watch progress move (bench time held at one
+    # instant of the soak, then moved on to a later one); stop it
     fill_form(page, "thermal_ramp", LONG_SOAK)
     page.click("#start-run")
     page.wait_for_url("**/ui/runs/*")
     first = int(page.url.rstrip("/").rsplit("/", 1)[1])
-    wait_status(page, ("running",), 15)
+    wait_status(page, ("running",))
     mark("run 1 started", t_start)
-    page.wait_for_function("() => Number(document.getElementById('run-progress').textContent) > 0.5",
-                           timeout=15_000)
+    dash.hold_at(WATCH_AT[0])
+    page.wait_for_function("() => Number(document.getElementById('run-progress').textContent) > 0.5")
     p1 = progress(page)
-    page.wait_for_function(f"() => Number(document.getElementById('run-progress').textContent) > {p1 + 0.5}",
-                           timeout=15_000)
+    dash.hold_at(WATCH_AT[1])
+    page.wait_for_function(f"() => Number(document.getElementById('run-progress').textContent) > {p1 + 0.5}")
     page.wait_for_function("() => Number(document.getElementById('plot-chamber').dataset.points) > 5 && "
-                           "Number(document.getElementById('plot-probes').dataset.points) > 5",
-                           timeout=15_000)
+                           "Number(document.getElementById('plot-probes').dataset.points) > 5")
     assert page.locator("#events li").count() > 0
+    assert wait_status(page, ("running",)) == "running"
     shot(page, "02-run-live")
     page.click("#btn-stop")
+    page.wait_for_selector("#events li[data-kind='request_stop']")
+    dash.release()                     # the rest runs as fast as the host can
     mark("run 1 stopping", t_start)
-    status = wait_status(page, ("completed", "aborted", "failed"), 20)
+    status = wait_status(page, ("completed", "aborted", "failed"))
     assert status == "completed", page.text_content("#summary")
     assert "stopped" in page.text_content("#summary")                   # outcome: stopped by the operator
     assert page.locator("#btn-stop").is_disabled()
@@ -226,12 +152,11 @@ def operator_session(service: str, page) -> None:
     second = int(page.url.rstrip("/").rsplit("/", 1)[1])
     mark("run 2 started", t_start)
     assert second != first
-    status = wait_status(page, ("completed", "aborted", "failed"), 40)
+    status = wait_status(page, ("completed", "aborted", "failed"))
     assert status == "completed" and "stopped" not in page.text_content("#summary"), page.text_content("#summary")
     assert float(page.get_attribute("#summary .progress", "data-percent")) == pytest.approx(100.0)
     mark("run 2 completed", t_start)
-    page.wait_for_function("() => Number(document.getElementById('plot-gyro').dataset.points) > 20",
-                           timeout=10_000)
+    page.wait_for_function("() => Number(document.getElementById('plot-gyro').dataset.points) > 20")
     assert set(page.get_attribute("#plot-gyro", "data-series").split(",")) >= {"x", "y", "z"}
     shot(page, "04-run-completed")
 
@@ -255,10 +180,10 @@ def operator_session(service: str, page) -> None:
     mark("coefficients shown", t_start)
     # --- the fit report (HTML with before / after plots) in a sandboxed frame
     page.click("#coefficients [data-model='dynamic'] a[href^='/ui/fits/']")
-    page.wait_for_selector("#report-frame, #alert.error", timeout=30_000)
+    page.wait_for_selector("#report-frame, #alert.error")
     assert page.locator("#report-frame").count() == 1, f"no fit report: {page.text_content('#alert')}"
     frame = page.frame_locator("#report-frame")
-    frame.locator("img").first.wait_for(timeout=10_000)
+    frame.locator("img").first.wait_for()
     assert frame.locator("img").count() >= 1
     shot(page, "07-fit-report")
 
@@ -273,4 +198,4 @@ def operator_session(service: str, page) -> None:
     assert "404" in page.text_content("#alert") and "run 999 does not exist" in page.text_content("#alert")
 
     assert not errors, errors
-    assert time.monotonic() - t_start < 60, "the browser test must stay under 60 s"
+    mark("done", t_start)         # the wall time is reported, not asserted: a loaded host only makes it slower

@@ -17,6 +17,7 @@ from bench.storage import queries
 from bench.storage.models import Event, FrameChunk
 from bench.engine import Devices
 from tests.api_support import SHORT_RAMP, DoublesBench, register_bench, start_worker, unique_bench, wait_for
+from tests.service_support import SAFETY_S
 
 
 
@@ -86,17 +87,19 @@ def test_a_worker_frozen_past_its_lease_wakes_fenced_and_the_run_completes(db):
     a._heartbeat = frozen_heartbeat
     b = None
     try:
-        wait_for(lambda: a.current_run == run_id and len(freezer.calls) > 50, 30, "worker A driving the run")
+        wait_for(lambda: a.current_run == run_id and len(freezer.calls) > 50, SAFETY_S,
+                 "worker A driving the run")
         freezer.freeze.set()                                   # SIGSTOP
-        wait_for(freezer.frozen.is_set, 30, "worker A frozen")
+        wait_for(freezer.frozen.is_set, SAFETY_S, "worker A frozen")
         b, b_thread = start_worker(db, name, doubles)
-        wait_for(lambda: _run(db, run_id).worker == b.worker_id, 60, "worker B taking the run over")
-        done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, 120,
+        wait_for(lambda: _run(db, run_id).worker == b.worker_id, SAFETY_S, "worker B taking the run over")
+        done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, SAFETY_S,
                         "the run to end under worker B")
         assert done.status == "completed", done.error
         frozen_at = freezer.calls_at_freeze
         freezer.thaw.set()                                     # SIGCONT
-        wait_for(lambda: any(rid == run_id for rid, _ in a.runs_done), 60, "worker A leaving its run loop")
+        wait_for(lambda: any(rid == run_id for rid, _ in a.runs_done), SAFETY_S,
+                 "worker A leaving its run loop")
         assert dict(a.runs_done)[run_id] == "lost"
         # after the wake: no command; only its own connections released (close_devices: the link's reader
         # thread and ports closed, nothing sent)

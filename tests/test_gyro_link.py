@@ -14,6 +14,7 @@ from bench.devices.gyro import GyroSerialLink
 from bench.errors import LinkDown, ProtocolError
 from bench.interfaces import GyroLink
 from bench.sim.gyro import GyroSample, GyroStreamSimulator
+from tests.service_support import SAFETY_S
 from tests.test_gyro_codec import independent_decode
 
 T0 = 1_700_000_000.0
@@ -275,10 +276,7 @@ def test_accelerated_clock_batches_frames_at_exact_bench_times():
     clock = AcceleratedClock(speed=50.0, bench_epoch=T0)
     sim, link = make(clock, rate=250)                       # 12 500 frames per wall second
     try:
-        time.sleep(0.4)
-        got = link.drain()
-        collect_more = collect(link, 1)
-        got += collect_more
+        got = collect(link, 2001, timeout_s=SAFETY_S)           # about 0.16 wall s of frames when idle
         sent = sim.sent_frames()
         # frames made before the link connected are lost, and pyserial's open() flushes input that
         # arrived between accept() and open() returning: the link's stream starts a little late

@@ -10,11 +10,6 @@ nothing and stores nothing when it wakes (fenced).  Data are just above the clos
 """
 from __future__ import annotations
 
-import os
-import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -26,15 +21,13 @@ from bench.jobs import JobRunner, enqueue
 from bench.storage import open_database
 from bench.storage.models import Analysis, Fit
 from tests import synth
-from tests.api_support import OPERATOR, TOKENS, VIEWER
+from tests.api_support import OPERATOR, TOKENS_TEXT, VIEWER
+from tests.service_support import SAFETY_S, Services, wait_for
 
 # 3302 s of training and 1402 s of validation at 1 s: just above MIN_TRAIN_S and MIN_VALIDATE_S
 TRAIN = [("hold", 300), ("ramp", 55, 2.0), ("hold", 600), ("ramp", 15, 2.0), ("hold", 300)]
 VALIDATE = [("hold", 150), ("ramp", 45, 2.0), ("hold", 250), ("ramp", 35, 2.0), ("hold", 100)]
 HIDDEN = {"gradient": 0.06, "rate": 0.08}
-DEADLINE_S = 300.0          # generous: a loaded 2-core machine; the drill waits on states, never on time
-
-
 @pytest.fixture(params=["sqlite", "postgresql"])
 def db_url(request, tmp_path):
     if request.param == "sqlite":
@@ -42,46 +35,13 @@ def db_url(request, tmp_path):
     return request.getfixturevalue("pg_url")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _services(tmp_path: Path, db_url: str) -> Services:
+    return Services(tmp_path, BENCH_DATABASE_URL=db_url, BENCH_TOKENS=TOKENS_TEXT)
 
 
-def _env(db_url: str, hold_file: str = "") -> dict[str, str]:
-    tokens = ",".join(f"{role}:{token}" for token, role in TOKENS.items())
-    return {**os.environ, "BENCH_DATABASE_URL": db_url, "BENCH_TOKENS": tokens, "BENCH_JOB_HOLD_FILE": hold_file}
-
-
-def _start_api(db_url: str, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "--factory", "api.app:app_from_env", "--port",
-                             str(port), "--log-level", "warning"], env=_env(db_url))
-    deadline = time.monotonic() + DEADLINE_S
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, "the API process ended"
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.1)
-    raise AssertionError("the API did not start")
-
-
-def _start_worker(db_url: str, hold_file: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "bench", "worker", "--analysis", "--heartbeat", "0.2",
-                             "--stale-after", "1.5", "--poll", "0.05", "--log-level", "warning"],
-                            env=_env(db_url, hold_file))
-
-
-def _wait(predicate, what: str, poll_s: float = 0.01):
-    deadline = time.monotonic() + DEADLINE_S
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll_s)
-    raise AssertionError(f"timed out waiting for {what}")
+def _start_worker(services: Services, hold_file: Path):
+    return services.worker("--analysis", "--heartbeat", "0.2", "--stale-after", "1.5", "--poll", "0.05",
+                           "--log-level", "warning", BENCH_JOB_HOLD_FILE=str(hold_file))
 
 
 def _job(db, job_id: int) -> Analysis:
@@ -110,59 +70,49 @@ def _held(hold_file: Path) -> tuple[int, str] | None:
 
 def test_kill_api_and_worker_during_a_close_loop_job(db_url, tmp_path):
     db = open_database(db_url)
-    procs: list[subprocess.Popen] = []
     hold = tmp_path / "job.hold"
     hold.touch()
     try:
-        train, val = _import_pair(db)
-        worker = _start_worker(db_url, str(hold))           # it boots while the API does; nothing is queued yet
-        procs.append(worker)
-        port = _free_port()
-        api = _start_api(db_url, port)
-        procs.append(api)
-        base = f"http://127.0.0.1:{port}"
-        r = httpx.post(f"{base}/close-loop", json={"model": "static", "train_run_id": train,
-                                                   "validation_run_id": val, "channels": ["x"]},
-                       headers=OPERATOR, timeout=30)
-        assert r.status_code == 202, r.text
-        job_id = r.json()["id"]
-        held_job, held_by = _wait(lambda: _held(hold), "the worker to reach the job hold point")
-        first = _job(db, job_id)
-        assert (held_job, held_by) == (job_id, first.worker)
-        assert (first.status, first.attempts, first.finished_at, first.result, first.report_html) == \
-            ("running", 1, None, None, None), "the job must be running, nothing of it stored, when it is killed"
-        for proc in (worker, api):
-            os.kill(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=30)
-        procs.clear()
-        assert _job(db, job_id).status == "running"
-        # lift the hold, restart everything: a new API, a new worker; the job is claimed again once its
-        # heartbeat is stale
-        hold.unlink()
-        Path(f"{hold}.held").unlink()
-        procs.append(_start_worker(db_url, str(hold)))
-        port = _free_port()
-        procs.append(_start_api(db_url, port))
-        base = f"http://127.0.0.1:{port}"
-        doc = _wait(lambda: (d := httpx.get(f"{base}/close-loop/{job_id}", headers=VIEWER, timeout=30).json())
-                    ["status"] in ("done", "failed") and d, "the job to end", poll_s=0.2)
-        assert doc["status"] == "done", doc["error"]
-        assert doc["attempts"] == 2 and doc["worker"] != first.worker
-        assert doc["result"]["channels"]["x"]["verdict"]
-        assert _held(hold) is None, "the second worker must not have held"
-        stored = _job(db, job_id)
-        assert (stored.worker, stored.attempts) == (doc["worker"], 2) and stored.report_html
-        t0 = time.perf_counter()
-        page = httpx.get(f"{base}{doc['report_url']}", headers=VIEWER, timeout=30)
-        print(f"\n{db.dialect}: report page ({len(page.content) / 1e6:.1f} MB) served in "
-              f"{(time.perf_counter() - t0) * 1e3:.0f} ms")
-        assert page.status_code == 200 and page.text.lstrip().lower().startswith("<!doctype html")
-        assert page.text == stored.report_html
+        with _services(tmp_path, db_url) as services:
+            train, val = _import_pair(db)
+            worker = _start_worker(services, hold)          # it boots while the API does; nothing is queued yet
+            api, base = services.api()
+            r = httpx.post(f"{base}/close-loop", json={"model": "static", "train_run_id": train,
+                                                       "validation_run_id": val, "channels": ["x"]},
+                           headers=OPERATOR, timeout=30)
+            assert r.status_code == 202, r.text
+            job_id = r.json()["id"]
+            held_job, held_by = services.wait_for(lambda: _held(hold), "the worker to reach the job hold point",
+                                                  worker, interval=0.01)
+            first = _job(db, job_id)
+            assert (held_job, held_by) == (job_id, first.worker)
+            assert (first.status, first.attempts, first.finished_at, first.result, first.report_html) == \
+                ("running", 1, None, None, None), "the job must be running, nothing of it stored, when it is killed"
+            services.kill(worker)
+            services.kill(api)
+            assert _job(db, job_id).status == "running"
+            # lift the hold, restart everything: a new API, a new worker; the job is claimed again once its
+            # heartbeat is stale
+            hold.unlink()
+            Path(f"{hold}.held").unlink()
+            worker = _start_worker(services, hold)
+            _, base = services.api()
+            doc = services.wait_for(
+                lambda: (d := httpx.get(f"{base}/close-loop/{job_id}", headers=VIEWER, timeout=30).json())
+                ["status"] in ("done", "failed") and d, "the job to end", worker, interval=0.2)
+            assert doc["status"] == "done", doc["error"]
+            assert doc["attempts"] == 2 and doc["worker"] != first.worker
+            assert doc["result"]["channels"]["x"]["verdict"]
+            assert _held(hold) is None, "the second worker must not have held"
+            stored = _job(db, job_id)
+            assert (stored.worker, stored.attempts) == (doc["worker"], 2) and stored.report_html
+            t0 = time.perf_counter()
+            page = httpx.get(f"{base}{doc['report_url']}", headers=VIEWER, timeout=30)
+            print(f"\n{db.dialect}: report page ({len(page.content) / 1e6:.1f} MB) served in "
+                  f"{(time.perf_counter() - t0) * 1e3:.0f} ms")
+            assert page.status_code == 200 and page.text.lstrip().lower().startswith("<!doctype html")
+            assert page.text == stored.report_html
     finally:
-        for proc in procs:
-            if proc.poll() is None:
-                proc.terminate()
-                proc.wait(timeout=30)
         db.dispose()
 
 
@@ -181,7 +131,7 @@ def test_a_worker_that_lost_its_job_stores_nothing(db_url):
         a = JobRunner(db, worker_id="worker-a", heartbeat_s=0.05, stale_after_s=0.2)
         b = JobRunner(db, worker_id="worker-b", heartbeat_s=0.05, stale_after_s=0.2)
         assert a.claim()[0] == job_id                       # A holds it, and then stops heartbeating
-        _wait(lambda: b.claim() is not None, "the job's lease to go stale")
+        wait_for(lambda: b.claim() is not None, SAFETY_S, "the job's lease to go stale", interval=0.01)
         with db.session() as s:                              # B's claim, seen from the database
             assert s.get(Analysis, job_id).worker == "worker-b"
         from bench.analysis import fit_job
@@ -215,13 +165,13 @@ def test_a_held_job_goes_on_when_the_hold_file_is_removed(tmp_path):
             job_id = enqueue(s, "fit", {"model": "static", "run_ids": [train]}).id
         thread = threading.Thread(target=runner.run_one)
         thread.start()
-        assert _wait(lambda: _held(hold), "the hold point") == (job_id, "worker-h")
+        assert wait_for(lambda: _held(hold), SAFETY_S, "the hold point", interval=0.01) == (job_id, "worker-h")
         beat = _job(db, job_id).heartbeat_at
-        _wait(lambda: _job(db, job_id).heartbeat_at > beat, "a heartbeat while held")
+        wait_for(lambda: _job(db, job_id).heartbeat_at > beat, SAFETY_S, "a heartbeat while held", interval=0.01)
         job = _job(db, job_id)
         assert (job.status, job.worker, job.result, job.fit_id) == ("running", "worker-h", None, None)
         hold.unlink()
-        thread.join(timeout=DEADLINE_S)
+        thread.join(timeout=SAFETY_S)
         assert not thread.is_alive() and runner.done == [(job_id, "done")]
         with db.session() as s:
             assert s.query(Fit).filter(Fit.gyro_id == "G-HOLD").count() > 0

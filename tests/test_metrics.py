@@ -15,6 +15,7 @@ from bench.metrics import api_registry, exposition, serve_worker_metrics
 from bench.storage import FrameWriter, open_database, queries
 from bench.storage.models import Suspension
 from tests.api_support import OPERATOR, SHORT_RAMP, TOKENS, VIEWER, DoublesBench, start_worker, unique_bench, wait_for
+from tests.service_support import SAFETY_S
 from tests.test_storage_support import make_frames
 
 
@@ -63,11 +64,11 @@ def test_api_and_worker_metrics_move_when_a_simulated_run_records(db):
         counted = api()                     # queued, running or already done: counted once whatever its status
         assert sum(v for (n, labels), v in counted.items()
                    if n == "bench_runs" and ("bench", name) in labels) == 1
-        mid = wait_for(lambda: (m := api()) and value(m, "bench_frames_stored_total", bench=name) > 0 and m, 30,
+        mid = wait_for(lambda: (m := api()) and value(m, "bench_frames_stored_total", bench=name) > 0 and m, SAFETY_S,
                        "frames stored while the run records")
         wait_for(lambda: c.get(f"/runs/{rid}", headers=VIEWER).json()["status"] in ("completed", "aborted", "failed"),
-                 60, "the run to end")
-        wait_for(lambda: worker.current_run is None, 10, "the worker to finish the run")
+                 SAFETY_S, "the run to end")
+        wait_for(lambda: worker.current_run is None, SAFETY_S, "the worker to finish the run")
         after = api()
         assert c.get(f"/runs/{rid}", headers=VIEWER).json()["status"] == "completed"
         assert value(after, "bench_runs", bench=name, status="completed") == 1

@@ -16,6 +16,7 @@ from bench.engine.sqlstore import SqlRunStore, new_run, run_report
 from bench.sim.bench import SimulatedBench
 from bench.storage.db import open_database
 from bench.storage.models import Event, Run, Segment
+from tests.service_support import SAFETY_S
 from tests.test_runs_support import cli
 
 
@@ -48,14 +49,14 @@ class SimRun:
         self.thread.start()
         return self
 
-    def wait_for(self, predicate, timeout_s: float = 60.0, what: str = "") -> None:
+    def wait_for(self, predicate, timeout_s: float = SAFETY_S, what: str = "") -> None:
         deadline = time.monotonic() + timeout_s
         while not predicate():
             assert self.thread.is_alive(), f"run ended ({self.status}) before {what}"
             assert time.monotonic() < deadline, f"timed out waiting for {what}"
             time.sleep(0.01)
 
-    def finish(self, timeout_s: float = 120.0) -> str:
+    def finish(self, timeout_s: float = SAFETY_S) -> str:
         self.thread.join(timeout_s)
         assert not self.thread.is_alive(), "engine did not finish"
         self.store.close(self.run_id)

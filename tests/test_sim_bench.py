@@ -23,11 +23,12 @@ from bench.devices.psu import ScpiPowerSupply
 from bench.devices.turntable import AcutrolTurntable
 from bench.fit.base import EARTH_RATE_DPH
 from bench.sim.bench import SimulatedBench
+from tests.service_support import SAFETY_S
 
 KEYS = {"chamber_modbus_tcp", "chamber_modbus_rtu", "turntable", "gyro", "psu", "w1_root"}
 
 
-def _wait_for(path: Path, proc: subprocess.Popen, timeout_s: float = 30.0) -> dict:
+def _wait_for(path: Path, proc: subprocess.Popen, timeout_s: float = SAFETY_S) -> dict:
     deadline = time.time() + timeout_s
     while time.time() < deadline:
         if path.exists():
