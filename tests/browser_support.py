@@ -1,5 +1,5 @@
-"""The dashboard's browser tests, one way: ``bench serve`` on a seeded simulated bench in lockstep (as
-fast as the host can; a hold file stops bench time at known instants) and headless Chromium (Debian
+"""The dashboard's browser tests, one way: ``bench serve`` on a seeded simulated bench in lockstep (a
+hold file stops bench time at known instants) and headless Chromium (Debian
 ``chromium`` driven by PyPI ``playwright``, never ``playwright install``).  Screenshots go to
 ``test-artifacts/dashboard/``."""
 from __future__ import annotations
@@ -52,18 +52,21 @@ class Dashboard:
 
 
 @contextlib.contextmanager
-def dashboard_service(tmp: Path, database_url: str | None = None, hold_at: float | None = None
-                      ) -> Iterator[Dashboard]:
-    """``bench serve --speed max --seed 0`` on ``database_url`` (default: an SQLite file in ``tmp``);
+def dashboard_service(tmp: Path, database_url: str | None = None, hold_at: float | None = None,
+                      speed: str = "max") -> Iterator[Dashboard]:
+    """``bench serve --speed SPEED --seed 0`` on ``database_url`` (default: an SQLite file in ``tmp``);
     with ``hold_at`` its bench time stops at that instant until ``Dashboard.hold_at``/``release``
-    moves or lifts the hold."""
+    moves or lifts the hold.  What a held run shows: its stored progress (``progress_percent``) as of
+    its last checkpoint, taken on the bench-time schedule; its live document (elapsed, remaining) as of
+    the worker's last publish, about every wall second, so a page that reads those at a hold needs a
+    paced clock (``speed``: at most that many bench seconds per wall second) to have it recent."""
     database_url = database_url or f"sqlite:///{tmp / 'bench.sqlite'}"
     hold = tmp / "bench.hold"
     if hold_at is not None:
         hold.write_text(repr(hold_at))
     with Services(tmp, BENCH_DATABASE_URL=database_url, BENCH_SIM_HOLD_FILE=str(hold),
                   BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items())) as services:
-        proc, base = services.serve("--speed", "max", "--seed", "0", token=TOKENS["viewer"])
+        proc, base = services.serve("--speed", speed, "--seed", "0", token=TOKENS["viewer"])
         try:
             yield Dashboard(base, hold, services, proc)
         finally:
