@@ -11,8 +11,8 @@
    or not the previous one has answered; several connections), each for a random gyro, and measures
    each latency from its *scheduled* send time (no coordinated omission).
 4. Steps through the rates (ascending), printing per step the achieved rate, p50 / p95 / p99 / max in ms
-   and the 1-min load average; stops at the first rate whose p99 is over 20 ms (or with errors, or that
-   the client could not send), and prints the highest rate that kept p99 <= 20 ms.
+   and the 1-min load average (stopping once the server is saturated: the rate not achieved or p99 over
+   1 s), and prints the highest rate that kept p99 <= 20 ms without errors.
 
 ``--record``: meanwhile a third process records a run on the same database (``bench run thermal_ramp
 --sim --speed 3600``: the simulated bench, its worker engine and the frame writer); the measurement
@@ -233,8 +233,8 @@ def main() -> None:
                 step["frames_recorded_meanwhile"] = _frames_stored(db_url) - frames_before
             steps.append(step)
             print(json.dumps(step), flush=True)
-            if not step["meets"]:
-                break
+            if step["rate_achieved"] < 0.95 * rate or step["p99_ms"] > 50 * TARGET_P99_MS:
+                break                          # saturated: higher rates only queue longer
     finally:
         server.send_signal(signal.SIGTERM)
         server.wait(timeout=10)
