@@ -21,6 +21,7 @@ def test_coefficients_follow_the_accepted_rows_and_the_etag_changes_with_them(db
     r2 = math.nan if db.dialect == "sqlite" else None      # SQLite keeps Python's NaN token (orjson refuses it)
     with db.session() as s:
         s.add(Gyro(gyro_id="G-C", type="RLG", notes=""))
+        s.flush()
         s.add_all([_fit(1, ch, True, 0.1, r2) for ch in "xyz"] + [_fit(2, ch, False, 0.2, r2) for ch in "xyz"])
     doc = load_coefficients(db, "G-C")
     (m,) = doc["models"]
