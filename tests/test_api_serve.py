@@ -1,9 +1,9 @@
 """``bench serve`` end to end: API + worker + simulated bench (real drivers over loopback) in one
 process, on the embedded SQLite default and on PostgreSQL.  Through HTTP: start a shortened thermal_ramp, watch its
 progress, stop it, start another, let it finish, fetch the coefficients by gyro ID.  The bench runs in
-lockstep as fast as the host can (``--speed max``: the same data as at any pace); the first run is held
-at a known bench instant (the lockstep clock's hold file) while it is watched and stopped, so the test
-does not race the wall clock."""
+lockstep at x200 at most (the run's live document, ETA included, is published about every wall second);
+the first run is held at a known bench instant (the lockstep clock's hold file) while it is watched and
+stopped, so the test does not race the wall clock."""
 from __future__ import annotations
 
 import signal
@@ -31,7 +31,7 @@ def test_serve_simulated_bench_end_to_end(tmp_path, database_url):
     # BENCH_DATABASE_URL None: the embedded default
     with Services(tmp_path, BENCH_DATABASE_URL=database_url, BENCH_TOKENS=TOKENS_TEXT,
                   BENCH_SIM_HOLD_FILE=str(hold)) as services:
-        proc, base = services.serve("--speed", "max", "--seed", "3", token=VIEWER_TOKEN)
+        proc, base = services.serve("--speed", "200", "--seed", "3", token=VIEWER_TOKEN)
         bench = httpx.get(f"{base}/benches", headers=VIEWER, timeout=30).json()["benches"][0]
         assert bench["name"] == "sim1" and bench["devices"]["chamber"]["transport"] == "modbus_tcp"
         assert (tmp_path / "var" / "bench.sqlite").exists() == (database_url is None)

@@ -12,10 +12,8 @@ claimed, taken over, ended; A's log), never on a duration.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 
 import pytest
@@ -25,6 +23,7 @@ from bench.sim.bench import SimulatedBench
 from bench.storage import open_database, queries
 from bench.storage.models import Event, FrameChunk
 from tests.api_support import SHORT_RAMP, unique_bench
+from tests.service_support import Services
 
 SPEED = 60.0
 DEADLINE_S = 240.0          # a loaded 2-core machine; the drill waits on states
@@ -37,12 +36,9 @@ def db_url(request, tmp_path):
     return request.getfixturevalue("pg_url")
 
 
-def _worker(tmp, name: str, config: str, log: str, db_url: str) -> subprocess.Popen:
-    env = {**os.environ, "BENCH_DATABASE_URL": db_url}
-    return subprocess.Popen([sys.executable, "-m", "bench", "worker", "--bench", name, "--config", str(tmp / config),
-                             "--no-jobs", "--heartbeat", "0.2", "--stale-after", "1.5", "--poll", "0.05",
-                             "--log-level", "info"], env=env, cwd=tmp, stdout=open(tmp / log, "ab"),
-                            stderr=subprocess.STDOUT)
+def _worker(services: Services, name: str, config: str, log: str) -> subprocess.Popen:
+    return services.worker("--bench", name, "--config", str(services.tmp / config), "--no-jobs", "--heartbeat",
+                           "0.2", "--stale-after", "1.5", "--poll", "0.05", "--log-level", "info", log=log)
 
 
 def _wait(predicate, what: str, logs=()):
@@ -68,13 +64,14 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
     db = open_database(db_url)
     sim = SimulatedBench(speed=SPEED, bench_name=name).start()
     logs = (tmp_path / "a.log", tmp_path / "b.log")
+    services = Services(tmp_path, BENCH_DATABASE_URL=db_url)
     a = b = None
     try:
         sim.write_endpoints(tmp_path / "a.json")
         doc = json.loads((tmp_path / "a.json").read_text())
         doc["bench_config"]["chamber"].update(transport="modbus_rtu", address=sim.endpoints["chamber_modbus_rtu"])
         (tmp_path / "b.json").write_text(json.dumps(doc))
-        a = _worker(tmp_path, name, "a.json", "a.log", db_url)
+        a = _worker(services, name, "a.json", "a.log")
         with db.session() as s:
             rid = queries.create_run(s, procedure="thermal_ramp", bench_name=name, gyro_id="SIGSTOP",
                                      parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.3)).id
@@ -83,7 +80,7 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
         a_id = run.worker
         a.send_signal(signal.SIGSTOP)
         b_started = time.monotonic()
-        b = _worker(tmp_path, name, "b.json", "b.log", db_url)
+        b = _worker(services, name, "b.json", "b.log")
         run = _wait(lambda: (r := _run(db, rid)).worker not in (None, a_id) and r, "worker B taking over", logs)
         taken_over = time.monotonic()
         b_id = run.worker
@@ -122,12 +119,7 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
     finally:
         for proc in (a, b):
             if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGCONT)
-                proc.send_signal(signal.SIGTERM)
-                try:
-                    proc.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+                proc.send_signal(signal.SIGCONT)          # a stopped process cannot act on SIGTERM
+        services.close()
         sim.stop()
         db.dispose()
