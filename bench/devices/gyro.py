@@ -56,8 +56,10 @@ class GyroSerialLink(BackgroundLoop):
     thread_name = "gyro-link"
 
     def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float | None = None,
-                 queue_limit: int = 2_000_000, read_timeout_s: float = 0.01) -> None:
+                 queue_limit: int = 2_000_000, read_timeout_s: float = 0.01, lockstep_name: str = "gyro") -> None:
         super().__init__()
+        # lockstep: the name its simulator serves under (one per gyro line on a multi-gyro bench)
+        self.lockstep_name = lockstep_name
         self.config = config
         self.clock = clock
         self.stats = LinkStats()
@@ -88,12 +90,12 @@ class GyroSerialLink(BackgroundLoop):
     def _before_start(self) -> None:
         self._port = self._open()
         if self._lockstep:
-            self.clock.receive("gyro_link", self._receive_instant)
+            self.clock.receive(f"{self.lockstep_name}_link", self._receive_instant)
             self.clock.serve_now()
 
     def stop(self) -> None:
         if self._lockstep:
-            self.clock.forget("gyro_link")
+            self.clock.forget(f"{self.lockstep_name}_link")
         super().stop()
 
     def _after_stop(self) -> None:
@@ -199,7 +201,7 @@ class GyroSerialLink(BackgroundLoop):
     def _receive_instant(self, t: float, reports: dict) -> None:
         """Lockstep receiver: read every byte the simulator wrote up to bench time ``t`` (they are
         already in the socket buffer: the simulator served the instant first), then decode them."""
-        sent = reports.get("gyro") or {}
+        sent = reports.get(self.lockstep_name) or {}
         port = self._port
         if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
             deadline = time.monotonic() + self.receive_wait_s

@@ -124,3 +124,33 @@ class ScpiPowerSupply:
 
     def close(self) -> None:
         self.line.close()
+
+
+
+class PsuChannel(ScpiPowerSupply):
+    """One output channel of a multi-channel SCPI supply as a ``PowerSupply`` of its own.
+
+    Every request selects the channel in the same program message (``INST:NSEL n;:OUTP ON``,
+    ``INST:NSEL n;:MEAS:VOLT?``: SCPI-1999 INSTrument subsystem, as on Keysight E36300, Rigol DP800,
+    R&S HMP; ``;:`` starts the next command at the root), so a selection is never separated from its
+    command, and one line costs one round trip.  Channels of one supply share its ``SerialLine`` and a
+    lock (the error queue is the instrument's, read right after each setting under the same lock)."""
+
+    def __init__(self, supply: ScpiPowerSupply, channel: int, lock) -> None:
+        if isinstance(channel, bool) or not isinstance(channel, int) or channel < 1:
+            raise ValueError(f"power supply channel must be an integer >= 1, got {channel!r}")
+        self.config = supply.config
+        self.line = supply.line
+        self.channel = channel
+        self.lock = lock
+
+    def write(self, command: str) -> None:
+        with self.lock:
+            super().write(f"INST:NSEL {self.channel};:{command}")
+
+    def query(self, command: str) -> str:
+        with self.lock:
+            return super().query(f"INST:NSEL {self.channel};:{command}")
+
+    def close(self) -> None:
+        """The shared line is closed by the supply that owns it (``close_devices``)."""

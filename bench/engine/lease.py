@@ -10,7 +10,6 @@ beyond that (the process was frozen, SIGSTOP, a long GC pause) it asks the datab
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -99,4 +98,4 @@ class FencedDevice:
 
 
 def fence_devices(devices: Devices, lease: RunLease) -> Devices:
-    return Devices(**{f.name: FencedDevice(getattr(devices, f.name), lease) for f in dataclasses.fields(devices)})
+    return devices.wrapped(lambda device: FencedDevice(device, lease))

@@ -191,6 +191,11 @@ class Acquisition:
 
     def read_telemetry(self, now: float) -> None:
         status = self.read_chamber(now)
+        table = self.read_table(now)
+        psu_reading = self.read_psu(now)
+        self.record_telemetry(now, status, table, psu_reading)
+
+    def read_table(self, now: float) -> dict[int, AxisState] | None:
         table: dict[int, AxisState] | None = {}
         try:
             for axis in (self.outer_axis, self.inner_axis):
@@ -201,6 +206,9 @@ class Acquisition:
         else:
             self._link("table", None)
         self._watch("table", now)
+        return table
+
+    def read_psu(self, now: float) -> PsuReading | None:
         psu_reading: PsuReading | None
         try:
             psu = self.devices.psu
@@ -212,6 +220,10 @@ class Acquisition:
             self._link("psu", None)
             self.psu = psu_reading
         self._watch("psu", now)
+        return psu_reading
+
+    def record_telemetry(self, now: float, status: ChamberStatus | None, table: dict[int, AxisState] | None,
+                         psu_reading: PsuReading | None) -> None:
         if status is not None or table or psu_reading is not None:
             self.store.add_telemetry(self.run_id, now, status, table, psu_reading)
 

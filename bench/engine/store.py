@@ -19,6 +19,8 @@ Contract notes
 - Run status values: running, paused, suspended, stopping, completed, stopped, aborted, failed
   ("stopped" = ended early on an operator stop, after finishing the current recording).
 - Step status values: running, done, skipped, stopped, aborted, failed.
+- ``unit_runs``: for a multi-gyro run, slot -> the run id of that gyro's own run (the child run that
+  takes its frames, probes, supply telemetry, segments and gaps); empty for a one-gyro run.
 """
 from __future__ import annotations
 
@@ -71,3 +73,5 @@ class RunStore(Protocol):
     def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None: ...
 
     def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None: ...
+
+    def unit_runs(self, run_id: str) -> dict[str, str]: ...

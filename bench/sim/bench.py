@@ -277,6 +277,7 @@ _SERVER_STATE = {
 
 
 def _fields(name: str, obj: Any) -> dict[str, Any]:
+    name = name.split(":")[0]          # "gyro:g2": the second gyro of a multi-gyro bench
     if name in _SERVER_STATE:
         return {key: getattr(obj, key) for key in _SERVER_STATE[name]}
     return {key: value for key, value in vars(obj).items()
