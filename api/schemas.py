@@ -3,6 +3,7 @@ ranges, so a typo is an error rather than a silently ignored setting."""
 from __future__ import annotations
 
 import datetime as dt
+import re
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
@@ -21,7 +22,6 @@ ProcedureName = Literal[PROCEDURE_MODULES]
 # a registered model name or a formula (bench.fit.formula grammar and limits)
 MODEL_FORMAT = "gyrobench-model"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
-GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
 
 
 class _Body(BaseModel):
@@ -44,13 +44,33 @@ class _Body(BaseModel):
 
 class RunCreate(_Body):
     procedure: ProcedureName = Field(..., description="a name from GET /procedures")
-    gyro_id: str = GyroId
+    gyro_id: str | None = Field(None, pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', "
+                                "'_' or '-' (one gyro; give this or gyro_ids)")
+    gyro_ids: list[str] | None = Field(None, min_length=1, max_length=64, description=(
+        "several gyros in one chamber (a bench whose config lists gyro slots): each 'ID' (the next free "
+        "slot) or 'SLOT=ID'; the run gets one run per gyro, listed under units"))
     bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
     params: dict[str, Any] = Field(default_factory=dict,
                                    description="procedure parameters; see GET /procedures for schema and defaults")
     start_at: dt.datetime | None = Field(None, description="scheduled start (ISO 8601 with a time zone); "
                                                            "the run waits in the queue until then")
     operator: str | None = Field(None, max_length=64, description="who starts the run (for the records)")
+
+    @field_validator("gyro_ids")
+    @classmethod
+    def _gyro_ids(cls, value: list[str] | None) -> list[str] | None:
+        for item in value or ():
+            slot, sep, gyro = item.partition("=")
+            for part in ((slot, gyro) if sep else (item,)):
+                if not re.fullmatch(ID_PATTERN, part):
+                    raise ValueError(f"{item!r}: a gyro ID or SLOT=ID (1-64 letters, digits, '.', '_' or '-')")
+        return value
+
+    @model_validator(mode="after")
+    def _one_of(self) -> "RunCreate":
+        if (self.gyro_id is None) == (self.gyro_ids is None):
+            raise ValueError("give exactly one of gyro_id (one gyro) / gyro_ids (several gyros in one chamber)")
+        return self
 
     @field_validator("start_at")
     @classmethod

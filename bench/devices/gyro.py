@@ -220,10 +220,29 @@ class GyroSerialLink(BackgroundLoop):
                     self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
                                        f"not received within {self.receive_wait_s:g} s")
                     break
+        elif port is not None and "peer" in sent and self._local_addr is not None:
+            self._check_dropped(port)
         with self._rx_cond:
             data, self._rx_pending = bytes(self._rx_pending), bytearray()
         if data:
             self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
+
+    def _check_dropped(self, port: serial.SerialBase) -> None:
+        """Lockstep: the simulator serves no connection of ours; if it closed ours (a dropped line),
+        close the port so the reader thread reconnects (and records the gap) as on a real line."""
+        try:
+            port.timeout = 0
+            data = port.read(65536)
+        except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            self._gap_from = self.clock.now()
+            self._close_port()
+            return
+        finally:
+            if self._port is port:
+                port.timeout = self.read_timeout_s
+        if data:
+            self._on_bytes(data)
 
     def _read_now(self) -> None:
         """Lockstep: take whatever bytes are waiting (command replies), without blocking."""

@@ -11,7 +11,7 @@ frames stopped, its probes lost or unreadable, its supply link, the config's pro
 thresholds) follow ``BenchConfig.unit_faults``: ``suspend`` suspends the whole run (reason prefixed
 with the slot); ``continue`` marks the unit faulted from its last frame on (event ``unit_fault``),
 leaves its probes out of stability checks, and lets the others go on.  When the unit's condition
-clears, the outage is recorded as a gap of the unit's run (unless its link already recorded one);
+clears (a line fault: once its frames come back, not merely when its power goes off), the outage is recorded as a gap of the unit's run (unless its link already recorded one);
 still faulted when the run ends, the gap runs to the end and the unit's run ends ``failed``
 ("the run's outcome says so": the parent's final reason lists the failed units).
 
@@ -36,6 +36,7 @@ from bench.interfaces import ChamberStatus
 LogFn = Callable[..., None]
 UNIT_SOURCES = ("gyro", "probes", "psu")          # what a unit owns; chamber and table are the bench's
 BENCH_SOURCES = ("chamber", "table")
+LINE_KEYS = ("gyro_link", "gyro_frames")           # conditions of a unit's line (``bench.engine.suspenders``)
 
 
 @dataclass
@@ -46,6 +47,8 @@ class Unit:
     fault_since: float | None = None
     fault_reason: str | None = None
     link_gaps_at_fault: int = 0
+    frames_at_fault: int = 0
+    line_fault: bool = False          # the line or its frames failed: only new frames end the fault
     faults: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -116,8 +119,10 @@ class FixtureAcquisition:
                 conditions.update({f"{unit.slot}:{key}": f"{unit.slot}: {text}" for key, text in own.items()})
             elif own and not unit.faulted:
                 self._mark(unit, now, "; ".join(own.values()))
-            elif not own and unit.faulted:
+            elif unit.faulted and not own and (not unit.line_fault or unit.acq.frames_total > unit.frames_at_fault):
                 self._recovered(unit, now)
+            if unit.faulted and any(key in LINE_KEYS for key in own):
+                unit.line_fault = True
         self.conditions = conditions
 
     def _mark(self, unit: Unit, now: float, reason: str) -> None:
@@ -125,6 +130,8 @@ class FixtureAcquisition:
         unit.fault_since = last if last is not None and last <= now else now
         unit.fault_reason = reason
         unit.link_gaps_at_fault = unit.acq.link_gaps_seen
+        unit.frames_at_fault = unit.acq.frames_total
+        unit.line_fault = False
         unit.faults.append({"t_from": unit.fault_since, "reason": reason})
         self.log("warning", "unit_fault", f"gyro unit {unit.slot} (run {unit.run_id}) marked faulted: {reason}; "
                  f"the other units go on", slot=unit.slot, unit_run=unit.run_id, t_from=unit.fault_since)
@@ -207,7 +214,10 @@ class FixtureAcquisition:
         for unit in self.units:
             if unit.faulted:
                 assert unit.fault_since is not None
-                self.store.add_gap(unit.run_id, unit.fault_since, now, _gap_reason(unit.fault_reason))
+                # no next frame will close this gap: its missing frames are the unit's rate over it
+                rate = self.config.slot(unit.slot).gyro.data_rate_hz
+                self.store.add_gap(unit.run_id, unit.fault_since, now, _gap_reason(unit.fault_reason),
+                                   frames_missing=max(0, int(round((now - unit.fault_since) * rate)) - 1))
                 unit.faults[-1]["t_to"] = now
                 text = f"{unit.fault_reason} (from bench time {unit.fault_since:.0f} to the end of the run)"
                 self.store.set_run_status(unit.run_id, RunOutcome.FAILED, now, text)
@@ -222,13 +232,15 @@ class FixtureAcquisition:
     # ---- checkpoint ------------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:
         return {unit.slot: {"fault_since": unit.fault_since, "fault_reason": unit.fault_reason,
-                            "faults": unit.faults} for unit in self.units}
+                            "line_fault": unit.line_fault, "faults": unit.faults} for unit in self.units}
 
     def restore(self, state: dict[str, Any] | None) -> None:
         for unit in self.units:
             saved = (state or {}).get(unit.slot)
             if saved:
                 unit.fault_since, unit.fault_reason = saved.get("fault_since"), saved.get("fault_reason")
+                unit.line_fault = bool(saved.get("line_fault"))
+                unit.frames_at_fault = unit.acq.frames_total
                 unit.faults = list(saved.get("faults") or [])
 
 

@@ -110,8 +110,12 @@ class MemoryRunStore:
         self._run(run_id).segments.append({"step_index": step_index, "kind": kind, "t_from": t_from,
                                            "t_to": t_to, "labels": copy.deepcopy(labels)})
 
-    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
-        self._run(run_id).gaps.append({"t_from": t_from, "t_to": t_to, "reason": reason})
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str,
+                frames_missing: int | None = None) -> None:
+        gap = {"t_from": t_from, "t_to": t_to, "reason": reason}
+        if frames_missing is not None:
+            gap["frames_missing"] = frames_missing
+        self._run(run_id).gaps.append(gap)
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         run = self._run(run_id)

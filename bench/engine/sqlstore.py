@@ -306,8 +306,11 @@ class SqlRunStore:
             repetition=int(rep) if isinstance(rep, (int, float)) and not isinstance(rep, bool) else 0,
             labels=jsonable(stored_labels))
 
-    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
-        self.writer(run_id).record_gap(t_from, max(t_from, t_to), reason[:64])
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str,
+                frames_missing: int | None = None) -> None:
+        """``frames_missing`` None: the next frame closes the gap and counts them; given (an outage that
+        lasted to the end of the run, no next frame): a gap row of its own."""
+        self.writer(run_id).record_gap(t_from, max(t_from, t_to), reason[:64], frames_missing)
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         with self.db.session() as s:

@@ -390,6 +390,12 @@ class MultiChannelPsuSimulator(PsuSimulator):
         self.commands.append(ScpiCommand("INSTrument:[SELect]:NSELect", self._select,
                                          _query(lambda: str(self.selected))))
 
+    def handle_line(self, session: Any, line: bytes) -> bytes | None:
+        now = self.clock.now()
+        for model in self.models:          # a line may select any channel: every one at this bench instant
+            model.advance_to(now)
+        return super().handle_line(session, line)
+
     def _select(self, args: list[str]) -> None:
         value = self._number(args, "")
         if value != int(value) or not 1 <= int(value) <= len(self.models):

@@ -1,6 +1,6 @@
 """several gyros in one chamber: a multi-gyro run is a parent run (plan, steps, status, chamber and
 table telemetry) with one child run per gyro (its frames, probes, supply, segments, gaps and fits),
-``runs.parent_id`` pointing to the parent and ``runs.slot`` naming the fixture slot.
+``runs.parent_id`` naming the parent and ``runs.slot`` the fixture slot.
 
 Revision ID: 0005_gyro_units
 Revises: 0004_analysis_jobs
@@ -17,16 +17,16 @@ depends_on = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table("runs") as batch:
-        batch.add_column(sa.Column("parent_id", sa.Integer(), nullable=True))
-        batch.add_column(sa.Column("slot", sa.String(length=32), nullable=True))
-        batch.create_foreign_key("fk_runs_parent_id_runs", "runs", ["parent_id"], ["id"], ondelete="CASCADE")
-        batch.create_index("ix_runs_parent_id", ["parent_id"], unique=False)
+    # plain ADD / DROP COLUMN, never a batch rebuild of ``runs``: on SQLite a rebuild drops the old table,
+    # and with foreign keys enforced that cascade-deletes every run's data.  For the same reason
+    # ``parent_id`` carries no database foreign key (SQLite cannot drop a column named in one without a
+    # rebuild); ``bench.storage.queries.create_run`` is the one writer of it.
+    op.add_column("runs", sa.Column("parent_id", sa.Integer(), nullable=True))
+    op.add_column("runs", sa.Column("slot", sa.String(length=32), nullable=True))
+    op.create_index("ix_runs_parent_id", "runs", ["parent_id"], unique=False)
 
 
 def downgrade() -> None:
-    with op.batch_alter_table("runs") as batch:
-        batch.drop_index("ix_runs_parent_id")
-        batch.drop_constraint("fk_runs_parent_id_runs", type_="foreignkey")
-        batch.drop_column("slot")
-        batch.drop_column("parent_id")
+    op.drop_index("ix_runs_parent_id", table_name="runs")
+    op.drop_column("runs", "slot")          # SQLite >= 3.35
+    op.drop_column("runs", "parent_id")
