@@ -3,7 +3,6 @@ ranges, so a typo is an error rather than a silently ignored setting."""
 from __future__ import annotations
 
 import datetime as dt
-import re
 from typing import Annotated, Any, Literal
 
 from fastapi import Path
@@ -42,29 +41,29 @@ class _Body(BaseModel):
         return data
 
 
+GYRO_IN_SLOT_PATTERN = r"^([A-Za-z0-9][A-Za-z0-9._-]{0,63}=)?[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+
+
 class RunCreate(_Body):
+    # exactly one of gyro_id / gyro_ids, said in the schema too
+    model_config = ConfigDict(**_Body.model_config,
+                              json_schema_extra={"oneOf": [{"required": ["gyro_id"]}, {"required": ["gyro_ids"]}]})
+
     procedure: ProcedureName = Field(..., description="a name from GET /procedures")
-    gyro_id: str | None = Field(None, pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', "
-                                "'_' or '-' (one gyro; give this or gyro_ids)")
-    gyro_ids: list[str] | None = Field(None, min_length=1, max_length=64, description=(
-        "several gyros in one chamber (a bench whose config lists gyro slots): each 'ID' (the next free "
-        "slot) or 'SLOT=ID'; the run gets one run per gyro, listed under units"))
+    # absent, never null: the schema's oneOf counts a present key (the default None is not validated)
+    gyro_id: str = Field(  # type: ignore[assignment]
+        None, pattern=ID_PATTERN,
+        description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-' (one gyro; give this or gyro_ids)")
+    gyro_ids: list[Annotated[str, Field(pattern=GYRO_IN_SLOT_PATTERN)]] = Field(  # type: ignore[assignment]
+        None, min_length=1, max_length=64, description=(
+            "several gyros in one chamber (a bench whose config lists gyro slots): each 'ID' (the next free "
+            "slot) or 'SLOT=ID'; the run gets one run per gyro, listed under units"))
     bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
     params: dict[str, Any] = Field(default_factory=dict,
                                    description="procedure parameters; see GET /procedures for schema and defaults")
     start_at: dt.datetime | None = Field(None, description="scheduled start (ISO 8601 with a time zone); "
                                                            "the run waits in the queue until then")
     operator: str | None = Field(None, max_length=64, description="who starts the run (for the records)")
-
-    @field_validator("gyro_ids")
-    @classmethod
-    def _gyro_ids(cls, value: list[str] | None) -> list[str] | None:
-        for item in value or ():
-            slot, sep, gyro = item.partition("=")
-            for part in ((slot, gyro) if sep else (item,)):
-                if not re.fullmatch(ID_PATTERN, part):
-                    raise ValueError(f"{item!r}: a gyro ID or SLOT=ID (1-64 letters, digits, '.', '_' or '-')")
-        return value
 
     @model_validator(mode="after")
     def _one_of(self) -> "RunCreate":

@@ -241,3 +241,48 @@ def test_unit_fault_policy_suspend_suspends_the_whole_run(db):
     (susp,) = report["suspensions"]
     assert susp["reason"].startswith("g2: gyro frames stopped") and susp["t_from"] == pytest.approx(t0 + 312, abs=4)
     assert "suspended for a total" in report["error"]
+
+
+# ---- the operator service: POST /runs with gyro_ids, executed by the bench worker ----------------------
+def test_api_queues_gyro_ids_and_the_worker_runs_them(tmp_path):
+    from bench.worker import Worker
+    from tests.api_support import OPERATOR, wait_for
+
+    db = open_database(f"sqlite:///{tmp_path / 'svc.sqlite'}")
+    clock = lockstep_clock(None, 13)
+    bench = MultiGyroBench(units=2, clock=clock, seed=13).start()
+    cfg = bench.bench_config().model_copy(update={"name": "fixture1"})
+    worker = Worker(db, "fixture1", cfg, None, clock, bench_state=bench, heartbeat_s=0.2, stale_after_s=5.0,
+                    poll_s=0.05, run_jobs=False)
+    client = TestClient(create_app(db, tokens=TOKENS))
+    try:
+        body = {"procedure": "thermal_ramp", "bench": "fixture1", "gyro_ids": ["W-1", "g2=W-2"],
+                "params": {"start_c": 26, "soak_h": 0.04, "warmup_min": 1, "rate_c_per_min": 2, "end_c": 22,
+                           "final_hold_min": 1}}
+        bad = client.post("/runs", json={**body, "gyro_id": "W-0"}, headers=OPERATOR)
+        assert bad.status_code == 422 and "exactly one of gyro_id" in bad.text
+        too_many = client.post("/runs", json={**body, "gyro_ids": ["A", "B", "C"]}, headers=OPERATOR)
+        assert too_many.status_code == 422 and "3 gyros named but the bench has 2 slots" in too_many.text
+        r = client.post("/runs", json=body, headers=OPERATOR)
+        assert r.status_code == 201, r.text
+        run_id = r.json()["id"]
+        queued = client.get(f"/runs/{run_id}", headers=VIEWER).json()
+        assert [(u["slot"], u["gyro_id"], u["status"]) for u in queued["units"]] == [
+            ("g1", "W-1", "queued"), ("g2", "W-2", "queued")]
+        assert worker.run_once() == run_id                 # the parent is claimed, never a child on its own
+        assert worker.run_once() is None
+        done = client.get(f"/runs/{run_id}", headers=VIEWER).json()
+        assert done["status"] == "completed", done.get("error")
+        assert [(u["slot"], u["status"]) for u in done["units"]] == [("g1", "completed"), ("g2", "completed")]
+        for u in done["units"]:
+            unit = client.get(f"/runs/{u['run_id']}", headers=VIEWER).json()
+            assert unit["parent_id"] == run_id and unit["gyro_id"] == u["gyro_id"]
+            assert unit["latest"]["gyro"]["frames"] > 100 and unit["sampling"]["probes"]["max_interval_s"] <= 2.0
+            data = client.get(f"/runs/{u['run_id']}/data?stream=seconds&format=json", headers=VIEWER).json()
+            assert len(data["columns"]["gyro_x"]) > 100
+        by_gyro = client.get("/runs?gyro_id=W-2", headers=VIEWER).json()["runs"]
+        assert [r["slot"] for r in by_gyro] == ["g2"]      # the gyro's runs: its own, as before
+    finally:
+        client.close()
+        bench.stop()
+        db.dispose()

@@ -393,8 +393,8 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "units": [{"slot": u.slot, "run_id": u.id, "gyro_id": u.gyro_id, "status": u.status,
                        "outcome": (u.live or {}).get("outcome"), "error": u.error,
                        "frames": queries.frame_count(s, u.id),
-                       "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason}
-                                for g in queries.list_gaps(s, u.id)]}
+                       "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason,
+                                 "frames_missing": g.frames_missing} for g in queries.list_gaps(s, u.id)]}
                       for u in queries.unit_runs(s, run.id)],
         }
     from bench.storage.sampling import sampling_summary
