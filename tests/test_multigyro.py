@@ -61,6 +61,26 @@ def test_single_gyro_config_unchanged_and_slots_validated():
             BenchConfig.model_validate({"gyros": gyros})
 
 
+def test_example_fixture_config_builds_a_fixture():
+    from pathlib import Path
+
+    from bench.clock import RealClock
+
+    cfg = BenchConfig.load(Path(__file__).resolve().parents[1] / "examples" / "bench-multi.json")
+    devices = build_devices(cfg, RealClock())      # drivers open nothing until used
+    try:
+        assert [u.slot for u in devices.units] == ["s1", "s2", "s3", "s4"]
+        kinds = [type(u.psu).__name__ for u in devices.units]
+        assert kinds == ["PsuChannel", "PsuChannel", "PsuChannel", "ScpiPowerSupply"]
+        assert [u.psu.channel for u in devices.units[:3]] == [1, 2, 3] and len(devices.shared) == 1
+        assert [u.gyro.lockstep_name for u in devices.units] == ["gyro:s1", "gyro:s2", "gyro:s3", "gyro:s4"]
+        assert devices.only(["s2", "s4"]).units[1].slot == "s4"
+        with pytest.raises(ValueError, match="no gyro slot s9"):
+            devices.only(["s9"])
+    finally:
+        close_devices(devices)
+
+
 def test_assign_gyros_to_slots():
     cfg = BenchConfig.model_validate({"gyros": [_slot(f"g{k}", f"socket://h:{k}", f"00000000000{k}")
                                                 for k in (1, 2, 3)]})
@@ -286,3 +306,16 @@ def test_api_queues_gyro_ids_and_the_worker_runs_them(tmp_path):
         client.close()
         bench.stop()
         db.dispose()
+
+
+def test_a_slot_mounted_turned_sees_its_own_positions():
+    from bench.devices.orientation import EIGHT_POSITION_GEOMETRY as geo
+    from bench.engine.fixture import slot_position
+    from procedures.eight_position import EIGHT_POSITIONS
+
+    same = [slot_position(p, geo, geo.model_copy(update={"mounting": geo.mounting})) for p in EIGHT_POSITIONS]
+    assert same == list(EIGHT_POSITIONS)
+    # turned 180 degrees about its z axis: its x and y point the opposite way in every position
+    flip = {"E": "W", "W": "E", "N": "S", "S": "N", "U": "D", "D": "U"}
+    turned = [slot_position(p, geo, geo.model_copy(update={"mounting": "WSU"})) for p in EIGHT_POSITIONS]
+    assert turned == [flip[p[0]] + flip[p[1]] + p[2] for p in EIGHT_POSITIONS]

@@ -24,7 +24,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from bench.config import BenchConfig
+from bench.config import BenchConfig, TurntableGeometry
 from bench.devices.orientation import angles_for, code_at
 from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices
@@ -192,9 +192,7 @@ class FixtureAcquisition:
         own = self.config.slot_mounting(self.config.slot(slot))
         if not isinstance(position, str) or own is geo:
             return labels
-        outer, inner = angles_for(position, geo)
-        code, off_deg = code_at(outer, inner, own)
-        return {**labels, "position": code if off_deg <= 1.0 else None, "bench_position": position}
+        return {**labels, "position": slot_position(position, geo, own), "bench_position": position}
 
     def add_gap(self, t_from_by_unit: Callable[[str], float], t_to: float, reason: str) -> None:
         for unit in self.units:
@@ -242,6 +240,14 @@ class FixtureAcquisition:
                 unit.line_fault = bool(saved.get("line_fault"))
                 unit.frames_at_fault = unit.acq.frames_total
                 unit.faults = list(saved.get("faults") or [])
+
+
+def slot_position(position: str, bench: TurntableGeometry, own: TurntableGeometry) -> str | None:
+    """The orientation code a unit mounted as ``own`` reaches when the table stands where the bench's
+    mounting reaches ``position`` (None: not an orientation code within 1 degree)."""
+    outer, inner = angles_for(position, bench)
+    code, off_deg = code_at(outer, inner, own)
+    return code if off_deg <= 1.0 else None
 
 
 def _gap_reason(reason: str | None) -> str:

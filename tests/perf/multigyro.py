@@ -111,10 +111,16 @@ def realtime(args: argparse.Namespace) -> int:
         print(f"  {u['slot']} {u['gyro_id']}: {u['status']}, {u['frames']} frames stored of {expected} over their "
               f"span at {args.rate} Hz, {len(u['gaps'])} gaps ({missing} frames missing), simulator overruns "
               f"{overruns[u['slot']]}")
+    costs = sorted(clock.wall_cost_s.items(), key=lambda kv: -kv[1])
+    print("wall seconds the lockstep clock spent serving / receiving, by participant: "
+          + ", ".join(f"{name} {cost:.1f}" for name, cost in costs[:6]))
     cores = os.cpu_count() or 1
     share = cpu / (wall * cores)
-    print(f"CPU of this process (simulators + engine + database writers): {cpu:.1f} s = {100 * share:.0f} % of "
-          f"{cores} cores over the wall time; headroom {100 * (1 - share):.0f} %; load average at end {_load()}")
+    need = cpu / bench_s / cores            # of the machine, to run this at x1 with nothing else on it
+    print(f"CPU of this process (simulators + engine + database writers): {cpu:.1f} s user + system over "
+          f"{wall:.1f} s wall = {100 * share:.0f} % of {cores} cores; per bench second {cpu / bench_s:.3f} CPU s, "
+          f"i.e. real time needs {100 * need:.0f} % of the {cores} cores (headroom {100 * (1 - need):.0f} %); "
+          f"load average at end {_load()}")
     db.dispose()
     ok = status == "completed" and lost == 0 and pace >= 0.98
     return 0 if ok else 1
