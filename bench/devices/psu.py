@@ -117,6 +117,15 @@ class ScpiPowerSupply:
     def measure_current(self) -> float:
         return self._float("MEAS:CURR?")
 
+    def reading(self) -> tuple[float, float, bool]:
+        """(volts, amps, output on) in one program message, ``MEAS:VOLT?;:MEAS:CURR?;:OUTP?``: one round
+        trip instead of three (the reply is the three results joined by ``;``)."""
+        reply = self.query("MEAS:VOLT?;:MEAS:CURR?;:OUTP?")
+        parts = [p.strip() for p in reply.split(";")]
+        if len(parts) != 3 or not all(_NUMBER.fullmatch(p) for p in parts[:2]) or parts[2].upper() not in ("0", "1", "ON", "OFF"):
+            raise ProtocolError(f"power supply at {self.config.url}: MEAS:VOLT?;:MEAS:CURR?;:OUTP? returned {reply!r}")
+        return float(parts[0]), float(parts[1]), parts[2].upper() in ("1", "ON")
+
     def apply_config(self) -> None:
         """Set the configured voltage and current limit (output state unchanged)."""
         self.set_current_limit(self.config.current_limit_a)

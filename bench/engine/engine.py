@@ -143,8 +143,11 @@ class Engine:
         if opened:
             self.store.close_suspension(run_id, opened["id"], last_t, opened["reason"] + " (run interrupted)")
         gap_from = _gap_start(last_t, self.store.last_frame_time(run_id))
-        self.store.add_gap(run_id, gap_from, now, "engine interrupted")
-        if self.fixture is not None:
+        if self.fixture is None:
+            self.store.add_gap(run_id, gap_from, now, "engine interrupted")
+        else:
+            # the parent has no frames to close its gap with: a row of its own; each unit's closes at its next frame
+            self.store.add_gap(run_id, gap_from, now, "engine interrupted", frames_missing=0)
             self.fixture.restore(cp.get("units"))
             self.fixture.add_gap(lambda unit_run: _gap_start(last_t, self.store.last_frame_time(unit_run)), now,
                                  "engine interrupted")

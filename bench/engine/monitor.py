@@ -212,7 +212,12 @@ class Acquisition:
         psu_reading: PsuReading | None
         try:
             psu = self.devices.psu
-            psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
+            combined = getattr(psu, "reading", None)      # one round trip where the driver offers it
+            if combined is not None:
+                volts, amps, on = combined()
+                psu_reading = PsuReading(volts=volts, amps=amps, on=on)
+            else:
+                psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
         except DeviceError as exc:
             self._link("psu", exc)
             psu_reading = None
