@@ -113,6 +113,9 @@ def test_psu_channels_over_one_line():
         assert ch[3].output_state() and not ch[1].output_state()
         assert ch[3].measure_voltage() == pytest.approx(28.0, abs=0.1) and ch[3].measure_current() > 0
         assert ch[2].measure_current() == 0
+        volts, amps, on = ch[3].reading()                  # one program message, three answers
+        assert volts == pytest.approx(28.0, abs=0.1) and amps == pytest.approx(ch[3].measure_current()) and on
+        assert ch[1].reading()[2] is False
         with pytest.raises(PsuCommandError, match=r"-222"):
             PsuChannel(supply, 4, lock).output(True)
     finally:

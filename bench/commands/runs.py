@@ -277,14 +277,9 @@ def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str)
 
 
 def _sim_bench(units: int | None, **kwargs: Any):
-    """The simulated bench of a run: one gyro, or ``units`` gyros in one chamber."""
-    if units:
-        from bench.sim.multibench import MultiGyroBench
+    from bench.sim.multibench import simulated_bench
 
-        return MultiGyroBench(units=units, **kwargs)
-    from bench.sim.bench import SimulatedBench
-
-    return SimulatedBench(**kwargs)
+    return simulated_bench(units, **kwargs)
 
 
 def _units_for(config, gyros: list[str]) -> list[tuple[str, str]] | None:

@@ -43,6 +43,11 @@ from bench.sim.w1 import W1TreeSimulator
 DEFAULT_SPREAD = {"intercept_dph": 0.5, "coefficient_rel": 0.2, "noise_rel": 0.15}
 
 
+def simulated_bench(units: int | None = None, **kwargs: Any) -> SimulatedBench:
+    """The simulated bench of a command: one gyro (``units`` None), or ``units`` gyros in one chamber."""
+    return MultiGyroBench(units=units, **kwargs) if units else SimulatedBench(**kwargs)
+
+
 def slot_name(index: int) -> str:
     return f"g{index + 1}"
 
