@@ -218,7 +218,10 @@ class Engine:
             if not units:
                 raise BenchError(f"run {run_id}: this bench carries several gyros (slots "
                                  f"{', '.join(u.slot for u in self.devices.units)}) but the run names none")
-            self.devices = self.devices.only(units)
+            try:
+                self.devices = self.devices.only(units)
+            except ValueError as exc:
+                raise BenchError(f"run {run_id}: {exc}") from None
             self.acq = self.fixture = FixtureAcquisition(self.devices, self.store, run_id, units, self.config,
                                                          self.cfg, self.log, now)
         else:
