@@ -15,6 +15,7 @@ results do not depend on the order in which streams are used nor on the chunk si
 from __future__ import annotations
 
 import numpy as np
+from scipy.signal import lfilter   # at import: importing it mid-run would stall the simulators
 
 from bench.sim.scenario import ChannelNoise, RandomSteps
 
@@ -46,8 +47,6 @@ def first_order_recursion(phi, x: np.ndarray, y0) -> np.ndarray:
             prev = phi * prev + x[k]
             out[k] = prev
         return out
-    from scipy.signal import lfilter     # scipy.signal takes seconds to import: only when used
-
     if x.ndim == 1:
         return lfilter([1.0], [1.0, -phi], x, zi=[phi * y0])[0]
     out = np.empty_like(x)
