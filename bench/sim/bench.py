@@ -224,8 +224,11 @@ class SimulatedBench:
         return float(snap["t"])
 
     def _state_objects(self) -> dict[str, Any]:
-        return {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
-                "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+        objects = {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
+                   "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+        if self.lookahead is not None:
+            del objects["inputs"]      # recorded again from the device models after a restore
+        return objects
 
     # ---------------------------------------------------------------- addresses
     @property

@@ -146,6 +146,8 @@ class Lookahead:
             self._fp = None
             self._t = float(t)
             self._ahead = self.MIN_AHEAD_S
+            # the probes may be read at the restored instant before the clock moves
+            self.inputs.rows = {self._t: _row(self.bench, list(self._models()), self._t)}
 
     # ---- internals ----------------------------------------------------------------------------
     def _models(self) -> tuple[Any, Any, Any]:
