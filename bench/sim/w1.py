@@ -221,25 +221,35 @@ class W1TreeSimulator(BackgroundLoop):
         read = (current, self._retained[name])
         if self._last_read.get(name) == read and name in self._written and os.path.isdir(self._device_dir_str(name)):
             return              # the same conversion result as the files already show
-        directory = self.device_dir(name)
+        directory = self._device_dir_str(name)
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
-        if self._written.get(name) == text and directory.is_dir():
+        present = os.path.isdir(directory)
+        if self._written.get(name) == text and present:
             self._last_read[name] = read
             return              # same conversion result: the files already say exactly this
-        directory.mkdir(parents=True, exist_ok=True)
-        _atomic_write(directory / "w1_slave", text)
-        temperature_file = directory / "temperature"
+        if not present:
+            os.makedirs(directory, exist_ok=True)
+        _atomic_write(os.path.join(directory, "w1_slave"), text)
+        temperature_file = os.path.join(directory, "temperature")
         if ok:
             _atomic_write(temperature_file, f"{millidegrees(raw_temperature(current))}\n")
         else:
-            temperature_file.unlink(missing_ok=True)
+            try:
+                os.unlink(temperature_file)
+            except FileNotFoundError:
+                pass
         self._written[name] = text
         self._last_read[name] = read
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.{threading.get_ident()}")
-    tmp.write_text(text, encoding="ascii")
+def _atomic_write(path: str, text: str) -> None:
+    head, name = os.path.split(path)
+    tmp = os.path.join(head, f".{name}.tmp{os.getpid()}.{threading.get_ident()}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+    try:
+        os.write(fd, text.encode("ascii"))
+    finally:
+        os.close(fd)
     os.replace(tmp, path)
