@@ -29,6 +29,7 @@ import numpy as np
 from bench.clock import AcceleratedClock, Clock, LockstepClock, SteppedClock
 from bench.config import (BenchConfig, ChamberConfig, GyroConfig, ProbeConfig, PsuConfig, TurntableConfig)
 from bench.devices.orientation import check_geometry, rotation_about
+from bench.sim.audit import Received
 from bench.sim.chamber import ChamberSimulator
 from bench.sim.chamber_physics import ChamberModel
 from bench.sim.gyro import GyroStreamSimulator
@@ -273,6 +274,12 @@ class SimulatedBench:
     @property
     def config(self) -> BenchConfig:
         return self.bench_config()
+
+    def received(self) -> list[Received]:
+        """Every request the chamber, turntable, power supply and gyro received, in order of arrival
+        (``bench.sim.audit``: the bench side's record of which link commanded what, when)."""
+        logs = (self.chamber.received, self.turntable.received, self.psu.received, self.gyro.received)
+        return sorted((e for log in logs for e in log.entries()), key=lambda e: e.mono)
 
     def write_endpoints(self, path: str | Path) -> None:
         doc = dict(self.endpoints)
