@@ -59,6 +59,13 @@ class Devices:
         return Devices.fixture(self.chamber, self.turntable, [u for u in self.units if u.slot in wanted],
                                self.shared)
 
+    def drivers(self) -> list[Any]:
+        """Every driver of the bundle (a fixture: the chamber, the table, each unit's own, the shared supplies)."""
+        if not self.units:
+            return [self.chamber, self.turntable, self.gyro, self.probes, self.psu]
+        return [self.chamber, self.turntable, *(d for u in self.units for d in (u.gyro, u.probes, u.psu)),
+                *self.shared]
+
     def wrapped(self, wrap: Callable[[Any], Any]) -> "Devices":
         """The same bundle with every driver passed through ``wrap`` (e.g. lease fencing)."""
         if not self.units:

@@ -2,7 +2,7 @@
 
 One ``Acquisition`` (``bench.engine.monitor``) per gyro unit reads that unit's line, probes and power
 into the unit's own run (the child run of the multi-gyro run), on the same bench-time schedule as a
-single gyro; the chamber and the table are read once per telemetry instant and their readings go to
+single gyro; the chamber and the table are read once per telemetry instant (each on its own period) and their readings go to
 the parent run and to every unit's run (so each unit's run is complete on its own: export, fits,
 gaps and sampling work on it unchanged).
 
@@ -77,37 +77,45 @@ class FixtureAcquisition:
             acq = Acquisition(view, store, unit_runs[unit_dev.slot], unit_config, engine_config, log, now)
             for source in BENCH_SOURCES:
                 acq.suspenders[source] = []
-            acq.next_telemetry = math.inf          # telemetry is read once for all (``_read_telemetry``)
+            acq.next_telemetry = acq.next_table_psu = math.inf    # read once for all (``_read_telemetry``)
             set_format = getattr(store, "set_format", None)
             if set_format is not None:
                 set_format(unit_runs[unit_dev.slot], slot.gyro.frame, slot.gyro.data_rate_hz)
             self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq))
-        self.next_telemetry = now
+        self.next_telemetry = self.next_table_psu = now
         self.conditions: dict[str, str] = {}
 
     # ---- the engine's acquisition interface --------------------------------------------------
     def tick(self, now: float, powered_since: float | None) -> None:
         for unit in self.units:
             unit.acq.tick(now, powered_since)
-        if now >= self.next_telemetry:
+        chamber = now >= self.next_telemetry
+        table_psu = now >= self.next_table_psu
+        if chamber:
             self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
-            self._read_telemetry(now)
+        if table_psu:
+            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        if chamber or table_psu:
+            self._read_telemetry(now, chamber, table_psu)
         self._update_conditions(now)
 
     def next_due(self) -> float:
-        return min([self.next_telemetry, *(unit.acq.next_due() for unit in self.units)])
+        return min([self.next_telemetry, self.next_table_psu, *(unit.acq.next_due() for unit in self.units)])
 
     def flush(self, now: float) -> None:
         for unit in self.units:
             unit.acq.flush(now)
 
-    def _read_telemetry(self, now: float) -> None:
-        status = self.bench.read_chamber(now)
-        table = self.bench.read_table(now)
+    def _read_telemetry(self, now: float, chamber: bool, table_psu: bool) -> None:
+        """The chamber (every ``telemetry_period_s``) and the table (every ``table_psu_period_s``) once,
+        to the parent and every unit's run; each unit's supply on the table's schedule."""
+        status = self.bench.read_chamber(now) if chamber else None
+        table = self.bench.read_table(now) if table_psu else None
         self.bench.record_telemetry(now, status, table, None)
         for unit in self.units:
-            psu = unit.acq.read_psu(now)
-            unit.acq.status, unit.acq.status_t = status, now
+            psu = unit.acq.read_psu(now) if table_psu else None
+            if status is not None:
+                unit.acq.status, unit.acq.status_t = status, now
             unit.acq.record_telemetry(now, status, table, psu)
 
     # ---- conditions and unit faults -------------------------------------------------------------

@@ -98,4 +98,12 @@ class FencedDevice:
 
 
 def fence_devices(devices: Devices, lease: RunLease) -> Devices:
+    """Every driver wrapped in ``FencedDevice``; a driver that can (``guard_requests``) also checks the lease
+    before each request it puts on the wire, so a call that passed the check before the process froze
+    sends nothing more once it wakes without the lease (a status read is several requests).  On a
+    multi-gyro bench that is every unit's line, probes and supply too."""
+    for driver in devices.drivers():
+        guard = getattr(driver, "guard_requests", None)
+        if callable(guard):
+            guard(lease.check)
     return devices.wrapped(lambda device: FencedDevice(device, lease))

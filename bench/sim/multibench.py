@@ -32,8 +32,9 @@ import numpy as np
 
 from bench.config import BenchConfig, GyroConfig, GyroSlot, ProbeConfig, SlotPower
 from bench.devices.orientation import check_geometry
-from bench.sim.bench import SimulatedBench, _BenchInputs, _load_scenario
+from bench.sim.bench import SimulatedBench, _BenchInputs, _load_scenario, _RowInputs, device_inputs_row
 from bench.sim.gyro import GyroStreamSimulator
+from bench.sim.lookahead import Lookahead
 from bench.sim.physics import GyroPhysics
 from bench.sim.psu import MultiChannelPsuSimulator, PsuModel
 from bench.sim.scenario import Scenario
@@ -90,6 +91,7 @@ class _UnitView:
     _power_on_time = SimulatedBench._power_on_time
 
     def __init__(self, bench: SimulatedBench, psu_model: PsuModel, mounting: str) -> None:
+        self.clock = bench.clock
         self.geometry = bench.geometry.model_copy(update={"mounting": mounting})
         self._outer_axis, self._inner_axis, self._mounting = check_geometry(self.geometry)
         self.chamber_model = bench.chamber_model
@@ -110,6 +112,7 @@ class SimUnit:
     serve_name: str
     w1_name: str
     mounting: str
+    lookahead: Lookahead | None = None        # lockstep: the physics integrated in blocks (bench.sim.lookahead)
 
 
 class MultiGyroBench(SimulatedBench):
@@ -143,22 +146,31 @@ class MultiGyroBench(SimulatedBench):
             self._outer_axis, self._inner_axis, self._mounting = check_geometry(self.geometry)
         self.units: list[SimUnit] = [SimUnit(slots[0], 0, scenarios[0], self.psu_model, self.physics, self.gyro,
                                              self.w1, dict(self.serials), f"gyro:{slots[0]}", f"w1:{slots[0]}",
-                                             first_mounting)]
+                                             first_mounting, self.lookahead)]
         t0 = self.clock.now()
         frame = "hrg" if base.gyro_type == "hrg" else "kvh_a"
         for k in range(1, units):
             psu_model = PsuModel()
             psu_model.advance_to(t0)
             mounting = mountings.get(slots[k], bench_mounting)
-            physics = GyroPhysics(scenarios[k], t0, _BenchInputs(_UnitView(self, psu_model, mounting)),  # type: ignore[arg-type]
-                                  output_period_s=1.0 / self.data_rate_hz)
+            view = _UnitView(self, psu_model, mounting)
+            lookahead = None
+            if self.lockstep:      # as SimulatedBench: exact device states, blocks ahead of the clock
+                inputs = _RowInputs(view)  # type: ignore[arg-type]
+                inputs.rows[t0] = device_inputs_row(view, view.chamber_model, view.table_model, psu_model, t0)  # type: ignore[arg-type]
+                physics = GyroPhysics(scenarios[k], t0, inputs, output_period_s=1.0 / self.data_rate_hz)
+                lookahead = Lookahead(view, physics, inputs)  # type: ignore[arg-type]
+            else:
+                physics = GyroPhysics(scenarios[k], t0, _BenchInputs(view),  # type: ignore[arg-type]
+                                      output_period_s=1.0 / self.data_rate_hz)
+            source = lookahead or physics
             serials = {name: f"{k:04x}{0xA1B2C300 + i:08x}" for i, name in enumerate(self.probe_names)}
             root = Path(tempfile.mkdtemp(prefix=f"bench-w1-{slots[k]}-", dir=self.w1_root.parent))
             self.units.append(SimUnit(
                 slots[k], k, scenarios[k], psu_model, physics,
-                GyroStreamSimulator(physics, self.clock, self.data_rate_hz, frame, seed=12345 + k),
-                W1TreeSimulator(physics, self.clock, root, serials, min_wall_interval_s=0.005),
-                serials, f"gyro:{slots[k]}", f"w1:{slots[k]}", mounting))
+                GyroStreamSimulator(source, self.clock, self.data_rate_hz, frame, seed=12345 + k),
+                W1TreeSimulator(source, self.clock, root, serials, min_wall_interval_s=0.005),
+                serials, f"gyro:{slots[k]}", f"w1:{slots[k]}", mounting, lookahead))
         self.psu = MultiChannelPsuSimulator([u.psu_model for u in self.units], self.clock)
         self._drops: dict[str, list[float | None]] = {}
 
@@ -223,12 +235,28 @@ class MultiGyroBench(SimulatedBench):
             shutil.rmtree(unit.w1.root, ignore_errors=True)      # made by this bench (next to the first tree)
         super().stop()
 
+    def snapshot(self) -> dict[str, Any]:
+        with self._lock:
+            for unit in self.units[1:]:
+                if unit.lookahead is not None:
+                    unit.lookahead.settle()      # each unit's physics at the instant, not a block ahead
+            return super().snapshot()
+
+    def restore(self, snap: dict[str, Any]) -> float:
+        t = super().restore(snap)
+        with self._lock:
+            for unit in self.units[1:]:
+                if unit.lookahead is not None:
+                    unit.lookahead.reset(t)
+        return t
+
     def _state_objects(self) -> dict[str, Any]:
         objs = super()._state_objects()
         for unit in self.units[1:]:
             objs.update({f"psu:{unit.slot}": unit.psu_model, f"physics:{unit.slot}": unit.physics,
-                         f"inputs:{unit.slot}": unit.physics.inputs, f"w1:{unit.slot}": unit.w1,
-                         f"gyro:{unit.slot}": unit.gyro})
+                         f"w1:{unit.slot}": unit.w1, f"gyro:{unit.slot}": unit.gyro})
+            if unit.lookahead is None:
+                objs[f"inputs:{unit.slot}"] = unit.physics.inputs
         return objs
 
     # ---------------------------------------------------------------- addresses
