@@ -124,6 +124,19 @@ class Family:
     log_scale: bool = True
     chosen_probe: bool = True      # the probe/pair was searched (False: the declared model's own probe)
     options: int = 1               # how many probes / pairs it was chosen among
+    limits: tuple[float, float] | None = None   # where the parameter stays meaningful (None: one grid
+                                                # step beyond each end of the grid)
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """The range the continuous parameter is refined in: the grid is only where the scan starts,
+        an optimum at its edge is followed one grid step beyond it (or up to ``limits``)."""
+        if self.limits is not None:
+            return self.limits
+        g = self.grid
+        if len(g) < 2:
+            return (g[0], g[0]) if g else (float("nan"), float("nan"))
+        return (g[0] * g[0] / g[1], g[-1] * g[-1] / g[-2])
 
     @property
     def label(self) -> str:
@@ -329,14 +342,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         if widths:
             out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
                               lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
-                              "width_c", widths, chosen_probe=mine))
+                              "width_c", widths, chosen_probe=mine,
+                              limits=(widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     warm_taus = tuple(t for t in WARMUP_TAUS_S if t <= duration / 3.0)
     if len(warm_taus) >= 2:
-        out.append(Family("warmup", (), warm, "tau_s", warm_taus))
+        out.append(Family("warmup", (), warm, "tau_s", warm_taus, limits=(warm_taus[0] / 2.0, duration / 3.0)))
 
     if inputs.up is not None:
         out.append(Family("g_sensitivity", (), lambda x, _v: {f"g_{ax}": x.up[:, i] for i, ax in enumerate("xyz")}))
@@ -361,11 +375,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
 
 
 def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
-    """Gradual-hysteresis widths that saturate within the run's excursions: up to a quarter of the
-    probe's temperature span (a wider memory never saturates and is only a slow drift)."""
+    """Gradual-hysteresis widths that saturate within the run's excursions: up to half the probe's
+    temperature span (one full excursion brings the memory to 1 - exp(-2) = 86 % of saturation; a
+    wider memory never saturates and is only a slow drift)."""
+    return tuple(w for w in GRADUAL_WIDTHS_C if w <= _span(temp) / 2.0)
+
+
+def _span(temp: np.ndarray) -> float:
     t = temp[np.isfinite(temp)]
-    span = float(np.ptp(t)) if len(t) else 0.0
-    return tuple(w for w in GRADUAL_WIDTHS_C if w <= span / 4.0)
+    return float(np.ptp(t)) if len(t) else 0.0
 
 
 def _other_channel_temperatures(ctx: Context, probes: list[str]) -> list[str]:

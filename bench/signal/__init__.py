@@ -1,7 +1,8 @@
 """The signal vocabulary: the one definition of each operation the fitting, close-the-loop, simulator
 and engine code share.  Pure functions over numpy arrays; units in every docstring.
 
-* ``segments``: ``run_segments``, ``block_means`` (segment-aware, NaN ignored per column).
+* ``segments``: ``run_segments``, ``block_means`` (segment-aware, NaN ignored per column), ``BlockPlan``
+  (the same blocks computed once for many columns).
 * ``rate``: ``temperature_rate(time_s, temp_c, window_s, method=...)`` in C/min
   (``RATE_METHODS``: "centred_slope", "savgol2"), ``smoothed_temperature``.
 * ``allan``: ``allan_deviation`` (one NaN policy, ``MIN_ALLAN_SAMPLES``).
@@ -33,7 +34,7 @@ from bench.signal.rate import (
     smoothed_temperature_and_rate,
     temperature_rate,
 )
-from bench.signal.segments import BlockMeans, block_means, run_segments
+from bench.signal.segments import BlockMeans, BlockPlan, block_means, run_segments
 from bench.signal.stats import (
     WaldTest,
     column_scale,
@@ -45,7 +46,7 @@ from bench.signal.stats import (
 )
 
 __all__ = [
-    "AllanDeviation", "BlockMeans", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
+    "AllanDeviation", "BlockMeans", "BlockPlan", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
     "EIGHT_POSITIONS", "LinearFit", "MIN_ALLAN_SAMPLES", "OrientationError", "RATE_METHODS", "WaldTest",
     "allan_deviation", "bic", "block_means", "check_rate_method", "code_matrix", "column_scale",
     "earth_rate_body", "earth_rate_body_per_sample", "earth_rate_enu", "finite_rows", "hac_wald_test",
