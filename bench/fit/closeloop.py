@@ -39,7 +39,7 @@ from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, 
 from bench.fit.metrics import bias_stability
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
-from bench.signal import block_means
+from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
 
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
@@ -89,10 +89,6 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     """Tests the 100-s means of a residual for leftover structure: whiteness (Ljung-Box), the
     strongest periodic component with at least two periods in the record (Fisher's g test on the
     periodogram) and a linear trend (HAC)."""
-    import statsmodels.api as sm
-    from statsmodels.stats.diagnostic import acorr_ljungbox
-
-    from bench.fit.linear import newey_west_lags
     from bench.fit.metrics import window_means
 
     means = window_means(time_s, residual, 100.0)
@@ -106,8 +102,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     s = float(np.std(means, ddof=1))
     out["std100_dph"] = s
     out["ratio_to_noise_floor"] = s / noise_floor if noise_floor > 0 else float("inf")
-    lb = acorr_ljungbox(centred, lags=[min(10, n // 5)], return_df=True)
-    out["ljung_box_p"] = float(lb["lb_pvalue"].iloc[0])
+    out["ljung_box_p"] = ljung_box(centred, min(10, n // 5))[1]
     spec = np.abs(np.fft.rfft(centred)) ** 2
     spec = spec[2:]                         # k >= 2: at least two periods in the record
     if len(spec) > 2:
@@ -129,8 +124,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
         out["peak_period_s"] = float(1.0 / best.x)
         out["peak_amplitude_dph"] = sine_fit(best.x)[1]
     tt_h = np.arange(n) * 100.0 / 3600.0
-    X = sm.add_constant(tt_h)
-    res = sm.OLS(means, X).fit(cov_type="HAC", cov_kwds={"maxlags": max(1, newey_west_lags(n))})
+    res = ols_hac(np.column_stack([np.ones(n), tt_h]), means)
     out["trend_dph_per_h"] = float(res.params[1])
     out["trend_p"] = float(res.pvalues[1])
     out["failed_tests"] = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"),

@@ -45,6 +45,9 @@ from bench.signal import block_means, orientation_axes_per_sample, temperature_r
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+# a lag much shorter than a 100-s evidence block is a rate (lag_tau(T) - T = -tau dT/dt): the rate
+# family names that, so the time constant is not refined below the grid's first value
+LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
@@ -312,7 +315,8 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
             v = first_order_lag(x.temps[p], x.time, tau)
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
-        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own))
+        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own,
+                          limits=LAG_LIMITS_S))
     if own in probes and order > 1:
         def lag_shape(x: Inputs, tau, p=own):
             # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
@@ -320,7 +324,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
         out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", LAG_TAUS_S,
-                          chosen_probe=False))
+                          chosen_probe=False, limits=LAG_LIMITS_S))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),

@@ -75,10 +75,11 @@ def block_means_edf(m: int, allan_parts: dict[float, float]) -> float:
     sum of power-law noises (``allan_parts``: mu -> its Allan variance at the block length)."""
     m = int(max(m, 2))
     lags = np.abs(np.arange(m)[:, None] - np.arange(m)[None, :])
-    g = np.zeros((m, m))
+    by_lag = np.zeros(m)
     for mu, avar in allan_parts.items():
         if avar > 0:
-            g -= avar * _structure_ratio(lags, mu)          # -D/2, D(1) = 2 AVAR
+            by_lag -= avar * _structure_ratio(np.arange(m), mu)   # -D/2 per lag, D(1) = 2 AVAR
+    g = by_lag[lags]
     c = g - g.mean(axis=0, keepdims=True)
     c = c - c.mean(axis=1, keepdims=True)                   # A G A
     tr = float(np.trace(c))
