@@ -73,6 +73,10 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     assert best.value == pytest.approx(truth, rel=0.05)
     limited = fx.Family("warmup", (), family.builder, "tau_s", (1.0, 2.0), limits=(0.8, 3.0))
     assert limited.bounds == (0.8, 3.0)
+    # a thermal lag is not refined below the grid's first time constant: shorter, it is a rate
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    lags = [f for f in fx.families(ctx, fine) if f.kind == "thermal_lag"]
+    assert lags and all(f.bounds[0] == fx.LAG_TAUS_S[0] for f in lags)
 
 
 def test_block_means_edf_is_exact_for_white_noise_and_small_under_flicker():
