@@ -233,9 +233,9 @@ class SearchProblem:
         """Joint re-fit of every added effect's nonlinear parameters, then swaps."""
         return self.swap(self.refit_params(effects))
 
-    def refit_params(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+    def refit_params(self, effects: tuple[fx.Effect, ...], keep_families: bool = False) -> tuple[fx.Effect, ...]:
         """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
-        kind with the others held."""
+        kind with the others held (``keep_families``: only the continuous parameters)."""
         current = tuple(effects)
         n_eff = self.score(current, with_cv=False).n_eff
         best = self.bic(current, n_eff)
@@ -243,7 +243,8 @@ class SearchProblem:
             changed = False
             for i, eff in enumerate(current):
                 others = current[:i] + current[i + 1:]
-                fams = [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
+                fams = [eff.family] if keep_families else \
+                    [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
                 if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
                     coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
                                                             for v in (f.grid or (None,))))
@@ -478,15 +479,16 @@ def _at_floor(single, chosen, stop_at) -> bool:
 def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
           steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
     """Backward pass on TRAIN: an effect that no longer passes the gates given all the others (an
-    early choice made redundant by later ones) is removed, the weakest first.  The others are judged
-    with their nonlinear parameters re-fitted jointly without it (a time constant or width bent to
-    make room for a later effect would otherwise keep that effect looking necessary)."""
+    early choice made redundant by later ones) is removed, the weakest first.  The others keep their
+    families and are judged with their continuous parameters re-fitted jointly without it (a time
+    constant or width bent to make room for a later effect would otherwise keep that effect looking
+    necessary)."""
     current = tuple(effects)
     while len(current) > 1:
         weakest = None
         full = problem.score(current)
         for i, e in enumerate(current):
-            others = problem.refit_params(current[:i] + current[i + 1:])
+            others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
             ev = gates(problem, problem.score(others), full, (e,))
             if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
                 weakest = (i, ev["delta_bic"], others)
