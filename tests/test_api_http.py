@@ -224,15 +224,22 @@ def test_import_fit_accept_coefficients(env):
     assert v1["models"][0]["accepted"] is False
     is_problem(c.post(f"/fits/{fit['id']}/accept", headers=OPERATOR), 403)
     assert c.post(f"/fits/{fit['id']}/accept", headers=ADMIN).json()["accepted"] is True
-    coeffs = c.get("/gyros/G-100/coefficients", headers=VIEWER).json()
+    got = c.get("/gyros/G-100/coefficients", headers=VIEWER)
+    coeffs, etag = got.json(), got.headers["etag"]
     assert [m["model"] for m in coeffs["models"]] == ["static"]
     assert coeffs["models"][0]["channels"]["z"]["coefficients"]["A1"] == pytest.approx(0.1, abs=0.01)
+    # a client holding this answer is told it is unchanged, without a body
+    same = c.get("/gyros/G-100/coefficients", headers={**VIEWER, "If-None-Match": etag})
+    assert same.status_code == 304 and same.content == b"" and same.headers["etag"] == etag
     # a second accepted version replaces the first
     r2 = c.post("/fits", json={**body, "run_ids": [train, val], "validation_run_ids": [], "accept": True}, headers=ADMIN)
     assert r2.status_code == 202
     JobRunner(db).run_pending()
     assert c.get(r2.json()["url"], headers=VIEWER).json()["result"]["version"] == 2
     assert c.get("/gyros/G-100/coefficients?model=static", headers=VIEWER).json()["models"][0]["version"] == 2
+    changed = c.get("/gyros/G-100/coefficients", headers={**VIEWER, "If-None-Match": etag})
+    assert changed.status_code == 200 and changed.headers["etag"] != etag
+    assert changed.json()["models"][0]["version"] == 2
     listing = c.get("/gyros/G-100/fits", headers=VIEWER).json()["fits"]
     assert [(f["version"], f["accepted"]) for f in listing] == [(2, True), (1, False)]
     assert c.get(f"/fits/{fit['id']}", headers=VIEWER).json()["version"] == 1

@@ -108,6 +108,25 @@ def test_an_outage_reported_before_the_frames_return_is_one_row_counted_by_the_n
     assert gaps == [("link", 250, 199)]
 
 
+def test_unreported_silences_count_their_hidden_turns_and_a_late_read_counts_none(db, run_id):
+    """Nobody reports these outages: the counter shows only the loss modulo 128.  After a silent line
+    (0.4 s, 3 s) the host stamps stay that far ahead of the counted time, so whole turns are counted;
+    after a read 2 s late they fall back at the next prompt read, so none are."""
+    truth = make_frames(12_000, rate_hz=1000.0)
+    silent = set(range(2000, 2400)) | set(range(5000, 8000))
+    kept = []
+    for k, f in enumerate(truth):
+        if k in silent:
+            continue
+        late = 2.0 if 10_000 <= k < 10_300 else 0.0        # these frames sat in a buffer 2 s
+        kept.append(kvh_a_frame(f.host_time + late, f.sequence, f.gyro))
+    with FrameWriter(db, run_id, autostart=False, nominal_rate_hz=1000.0) as w:
+        w.add_many(kept)
+    with db.session() as s:
+        gaps = [(g.reason, g.frames_missing, g.after_index) for g in queries.list_gaps(s, run_id)]
+    assert gaps == [("corruption", 400, 1999), ("link", 3000, 4599)]
+
+
 def test_frames_read_in_one_burst_get_strictly_increasing_times_from_their_sequence(db, run_id):
     """The link stamps a whole read with one host time; stored times follow the counter and the rate
     (lost frames leave their period empty) and stay within a few periods of the host clock."""

@@ -53,6 +53,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -116,6 +117,7 @@ class WatlowF4Chamber:
         self._celsius = True
         self.model_number: int | None = None
         self._host_ramp: _HostRamp | None = None
+        self._guard: Callable[[], None] | None = None
 
     # ---- transport ---------------------------------------------------------------------------
     @staticmethod
@@ -157,9 +159,15 @@ class WatlowF4Chamber:
             self._drop_connection()
             raise
 
+    def guard_requests(self, guard: Callable[[], None] | None) -> None:
+        """Call ``guard`` before every Modbus request (it raises to keep one off the wire)."""
+        self._guard = guard
+
     def _transact(self, what: str, reg: int, call):
         """Run one Modbus transaction, mapping every failure to a ``bench.errors`` type."""
         self._pace()
+        if self._guard is not None:
+            self._guard()
         try:
             reply = call()
         except ModbusIOException as exc:

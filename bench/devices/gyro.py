@@ -37,6 +37,7 @@ import collections
 import re
 import threading
 import time
+from collections.abc import Callable
 
 import serial
 
@@ -83,6 +84,7 @@ class GyroSerialLink(BackgroundLoop):
         self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
         self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
         self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
+        self._guard: Callable[[], None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def _before_start(self) -> None:
@@ -251,10 +253,16 @@ class GyroSerialLink(BackgroundLoop):
                     popleft()
 
     # ------------------------------------------------------------------ ASCII configuration
+    def guard_requests(self, guard: Callable[[], None] | None) -> None:
+        """Call ``guard`` before every ASCII command sent to the gyro (it raises to keep one off)."""
+        self._guard = guard
+
     def _command(self, text: str, expect: re.Pattern[bytes], timeout_s: float) -> re.Match[bytes]:
         port = self._port
         if port is None:
             raise LinkDown(f"gyro serial link {self.config.url!r}: not connected, cannot send {text!r}")
+        if self._guard is not None:
+            self._guard()
         with self._reply_lock:
             self._reply_buf.clear()
         self._capturing_replies = True

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 
 from bench.config import PsuConfig
 from bench.devices.serial_line import SerialLine
@@ -38,6 +39,10 @@ class ScpiPowerSupply:
         self.config = config
         self.line = SerialLine(config.url, baudrate=config.baudrate, timeout_s=config.timeout_s,
                                name="power supply", write_terminator=b"\n", read_terminator=b"\n")
+
+    def guard_requests(self, guard: Callable[[], None] | None) -> None:
+        """Call ``guard`` before every request put on the line (it raises to keep one off)."""
+        self.line.request_guard = guard
 
     # low level -----------------------------------------------------------------------------------
     def write(self, command: str) -> None:

@@ -66,6 +66,7 @@ class SerialLine:
         self._opened_once = False
         self._lock = threading.RLock()
         self._carry = b""          # bytes received past the end of the last reply read (this transaction)
+        self.request_guard: Callable[[], None] | None = None   # called before each request goes on the wire
 
     # connection ------------------------------------------------------------------------------
     @property
@@ -122,6 +123,8 @@ class SerialLine:
     def _once(self, request: str, reader: Callable[["SerialLine"], T]) -> T:
         port = self._port
         assert port is not None
+        if self.request_guard is not None:
+            self.request_guard()             # raises to keep the request off the wire (a lost lease)
         self.stats.requests += 1
         try:
             self._carry = b""

@@ -29,6 +29,7 @@ import math
 import re
 import struct
 import time
+from collections.abc import Callable
 
 from bench.clock import Clock, Deadline, RealClock
 from bench.config import TurntableConfig
@@ -75,6 +76,10 @@ class AcutrolTurntable:
         self._configured: set[int] = set()
         self._rate_limit = {a: config.rate_limit_dps for a in range(1, self.axes + 1)}
         self._accel = {a: config.acceleration_dps2 for a in range(1, self.axes + 1)}
+
+    def guard_requests(self, guard: Callable[[], None] | None) -> None:
+        """Call ``guard`` before every request put on the line (it raises to keep one off)."""
+        self.line.request_guard = guard
 
     # low level -----------------------------------------------------------------------------------
     def command(self, text: str) -> None:

@@ -5,8 +5,8 @@ clock, and the fit hook that fits a procedure's declared models on the stored ru
 on ``Engine`` start); ``close_devices`` closes every driver and never raises.
 
 ``engine_config_for(clock)``: engine timing in bench seconds.  Real hardware (``RealClock``) and the
-stepped test clock keep the defaults: probes every 2 s, chamber / turntable / PSU telemetry every 5 s,
-a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
+stepped test clock keep the defaults: probes every 2 s, chamber status every 5 s, turntable and PSU
+every 10 s, a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
 time only moves when the engine sleeps and every sample is served before it does, so the same rates
 hold at any speed; its loop ticks every 2 s (the probe period) in soaks too.  An ``AcceleratedClock``
 (a simulated bench in another process that shares no lockstep clock) keeps the defaults as well: its

@@ -294,7 +294,9 @@ class SqlRunStore:
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         with self.db.session() as s:
             self._owned(s, run_key(run_id))
-            return int(queries.begin_suspension(s, run_key(run_id), t_from, reason).id)
+            sid = int(queries.begin_suspension(s, run_key(run_id), t_from, reason).id)
+        self.writer(run_id).begin_suspension(t_from)      # frames lost meanwhile: a suspension gap
+        return sid
 
     def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None:
         rid = run_key(run_id)
@@ -305,6 +307,7 @@ class SqlRunStore:
                 raise StorageError(f"run {rid} has no suspension {suspension_id}")
             sus.t_to = t_to
             sus.reason = reason
+        self.writer(rid).end_suspension(t_to)
 
     def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None:
         with self.db.session() as s:

@@ -37,7 +37,6 @@ from itertools import combinations
 from typing import Callable
 
 import numpy as np
-from scipy.signal import lfilter
 
 from bench.fit import prep
 from bench.fit.base import Dataset
@@ -215,6 +214,8 @@ def first_order_lag(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
         x = _hold_missing(x)
     dt = sample_period(time_s)
     a = np.exp(-dt / tau_s)
+    from scipy.signal import lfilter   # scipy.signal takes seconds to import: only when used
+
     y, _ = lfilter([1 - a], [1, -a], x, zi=[a * x[0]])
     return y
 

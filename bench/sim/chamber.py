@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import math
 import threading
 
@@ -72,6 +73,7 @@ from pymodbus.simulator import DataType, SimData, SimDevice
 
 from bench.clock import Clock
 from bench.errors import IllegalValue
+from bench.sim.audit import CommandLog
 from bench.sim.chamber_physics import (END_HOLD, STEP_END, STEP_RAMP_RATE, STEP_RAMP_TIME, STEP_SOAK, ChamberModel,
                                       ProfileStep)
 # Simulated-bench snapshots pickle the model's profile objects by module: these names keep the
@@ -488,6 +490,9 @@ class ChamberSimulator:
         self.faults = ChamberFaults(self)
         self.last_refusal: str | None = None
         self.wire_log: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=200)
+        # every request, by transport ("modbus_tcp" / "modbus_rtu"; the pymodbus hooks do not name the
+        # connection), as the function code and registers
+        self.received = CommandLog("chamber")
         self._lock = threading.RLock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
@@ -531,12 +536,13 @@ class ChamberSimulator:
             return self.registers.read(reg)
 
     # ---- request hooks (run in the server loop) ------------------------------------------------
-    def _trace_pdu(self, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
+    def _trace_pdu(self, transport: str, sending: bool, pdu: ModbusPDU) -> ModbusPDU | None:
         if sending:
             self._drop_next_packet = bool(getattr(pdu, "_bench_lost_reply", False))
             return pdu
         if pdu.dev_id != self.unit_id:
             return None                       # not for us: stay silent like an RTU slave
+        self.received.record(transport, f"fc{pdu.function_code} @{getattr(pdu, 'address', '?')}")
         ignore, code, delay, lose = self.faults._decide()
         if ignore:
             return None
@@ -563,7 +569,8 @@ class ChamberSimulator:
 
     # ---- servers -----------------------------------------------------------------------------
     async def _listen(self, kind: str, port: int) -> int:
-        hooks = {"trace_pdu": self._trace_pdu, "trace_packet": self._trace_packet}
+        hooks = {"trace_pdu": functools.partial(self._trace_pdu, f"modbus_{kind}"),
+                 "trace_packet": self._trace_packet}
         if kind == "tcp":
             server = ModbusTcpServer(self._device(), address=(self.host, port), **hooks)
         else:

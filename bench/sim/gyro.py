@@ -74,6 +74,7 @@ import numpy as np
 
 from bench.clock import Clock
 from bench.devices import kvh
+from bench.sim.audit import CommandLog, link_name
 
 ALLOWED_DATA_RATES = kvh.ALLOWED_DATA_RATES
 _RAD_PER_DEG = math.pi / 180.0
@@ -150,6 +151,7 @@ class GyroStreamSimulator:
         self.faults = GyroFaults(seed)
         self.sent_log: collections.deque[SentFrame] = collections.deque(maxlen=sent_log_limit)
         self.overrun_frames = 0
+        self.received = CommandLog("gyro")        # every ASCII command, by the sender's link
         self.max_backlog_frames = max_backlog_frames
         self._host, self._port = host, port
         self._rate = int(data_rate_hz)
@@ -357,6 +359,7 @@ class GyroStreamSimulator:
             line, self._cmd_buf = self._cmd_buf.split(b"\n", 1)
             text = line.decode("ascii", "replace").strip().upper()
             if text:
+                self.received.record(link_name(self._client_peer) if self.transport == "tcp" else "pty", text)
                 self._write_reply(self.execute_command(text))
 
     def execute_command(self, text: str) -> str:

@@ -11,6 +11,8 @@ Protocol-specific work lives in subclasses:
 - ``handle_line(session, line)`` gets one request line (terminator and a trailing ``\\r`` removed)
   and returns the complete reply bytes to send (framing included) or ``None`` for no reply.
 
+``received`` (``bench.sim.audit.CommandLog``) logs every request line with the sender's link.
+
 Fault injection: ``server.faults`` (a ``LineFaults``), changeable at any time from any thread.
 
 - ``delay_s``: wall seconds to wait before each reply is sent (a slow or stuck instrument).
@@ -28,6 +30,8 @@ import socket
 import threading
 import time
 from typing import Any
+
+from bench.sim.audit import CommandLog, link_name
 
 
 class LineFaults:
@@ -114,6 +118,7 @@ class LineServer:
         self._refuse_until = 0.0
         self._started = False
         self.connections_accepted = 0
+        self.received = CommandLog(self.name)       # every request line, by the sender's link
 
     # subclass API ------------------------------------------------------------------------------
     def new_session(self) -> Any:
@@ -242,6 +247,10 @@ class LineServer:
         buffer = b""
         term = self.request_terminator
         try:
+            link = link_name(conn.getpeername())
+        except OSError:
+            link = "?"
+        try:
             while not self._stopping.is_set() and self._connected(conn):
                 try:
                     chunk = conn.recv(4096)
@@ -256,6 +265,7 @@ class LineServer:
                     line, buffer = buffer.split(term, 1)
                     if line.endswith(b"\r"):
                         line = line[:-1]
+                    self.received.record(link, line.decode("ascii", "replace"))
                     self._answer(conn, session, line)
                 if len(buffer) > self.max_line:
                     buffer = b""  # an overlong line is discarded, as an instrument's input buffer would

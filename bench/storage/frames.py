@@ -15,9 +15,13 @@ soon as ``flush_frames`` frames are waiting, never only at the end.
   ``BufferFull``) and the batch is retried with exponential backoff.  If the connection died while
   committing, the writer reads ``frame_cursors.batch_seq`` before retrying, so a batch whose commit
   went through is not written twice.  ``status()`` reports buffered counts and the last error.
-* Gaps: a jump in the frame sequence counter (KVH: 0..127, device-protocols.md 3.1) is recorded as a
-  ``sequence`` gap with the estimated number of missing frames; link outages the engine learns
-  from ``LinkStats.link_gaps`` go in with ``record_gap``.
+* Gaps: one row per outage with its kind (``GAP_KINDS``) and ``frames_missing``.  A jump of the
+  frame sequence counter (KVH: 0..127, device-protocols.md 3.1) counts the frames lost modulo the
+  counter; whole turns hidden in it are counted with the data rate once the frames after it show the
+  host clock staying ahead of the counted time (a late read does not; see ``_CountedClock``).  Link
+  outages the engine learns from ``LinkStats.link_gaps`` and crash/resume go in with ``record_gap``;
+  while the run is suspended (``begin_suspension`` / ``end_suspension``) frames that stop are lost to
+  the ``suspension``.
 * Per-second sums (``frame_seconds``) of valid-status frames are computed with numpy when a chunk
   is sealed and upserted with the chunks, so 1-s means never need the raw frames.
 
@@ -46,8 +50,8 @@ from bench.storage import codec
 from bench.storage.db import Database
 from bench.storage.errors import BufferFull, StorageError, StorageUnavailable, UnknownRun, WriterFenced
 from bench.storage.models import (SECONDS_PER_BLOCK, SEGMENT_KINDS, SUM_FIELDS, Event, FrameChunk, FrameCursor,
-                                  FrameSecond, GAP_KINDS, Gap, ProbeReadingRow, Run, Segment, Telemetry,
-                                  utcnow)
+                                  FrameSecond, GAP_KINDS, GAP_KINDS_BY_RANK, Gap, ProbeReadingRow, Run, Segment,
+                                  Telemetry, utcnow)
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +156,61 @@ class _Outage:
     t_from: float
 
 
+class _CountedClock:
+    """The frames' bench time by the sequence counter and the data rate (``anchor + n / rate``, ``n`` the
+    frames counted, lost ones included), held against the host stamps.
+
+    ``offset`` = host stamp - counted time is how late the host read the frame (plus a constant).  Some
+    reads come late, but not all: the ``floor`` of the offsets is the prompt reads' latency.  A loss of
+    whole turns that the counter cannot show lifts the floor for good (``modulus / rate`` per turn); a
+    late read lifts single offsets only.  The floor may rise by ``DRIFT`` per counted second (the device
+    and host clocks drift apart)."""
+
+    DRIFT = 1e-3
+
+    def __init__(self, host: float, rate: float) -> None:
+        self.anchor, self.rate, self.n = host, rate, 0
+        self.floor, self.floor_n = 0.0, 0
+
+    def advance(self, steps: int, host: float) -> float:
+        """Count ``steps`` frames (one plus those lost before it); the new frame's offset."""
+        self.n += steps
+        return host - (self.anchor + self.n / self.rate)
+
+    def note(self, offset: float) -> None:
+        self.floor = min(offset, self.floor + self.DRIFT * (self.n - self.floor_n) / self.rate)
+        self.floor_n = self.n
+
+
+@dataclass
+class _TurnCheck:
+    """Jumps of the counter that the host clock leaves room for whole turns in, waiting for the frames
+    after them.  ``rows``: per jump, [its gap row (the counter's count), the turns the host clock has room
+    for, the lowest offset since the jump]; ``until_n`` the count that settles them all."""
+    floor_before: float
+    rows: list[list[Any]] = field(default_factory=list)
+    until_n: int = 0
+
+    def join(self, row: dict[str, Any], room: int, offset: float, until_n: int) -> None:
+        self.rows.append([row, room, offset])
+        self.until_n = until_n
+
+    def see(self, offset: float) -> None:
+        for entry in self.rows:
+            if offset < entry[2]:
+                entry[2] = offset
+
+    def turns(self, turn_s: float) -> list[int]:
+        """Whole turns lost at each jump: how far the lowest offset after it stands above the level the
+        jumps before it explain, within the host clock's room."""
+        level, out = self.floor_before, []
+        for _, room, after in self.rows:
+            n = max(0, min(room, round((after - level) / turn_s)))
+            level += n * turn_s
+            out.append(n)
+        return out
+
+
 def gap_kind(reason: str) -> str:
     """The kind of an outage (``GAP_KINDS``) from the words of whoever reported it."""
     text = reason.lower()
@@ -166,6 +225,12 @@ def gap_kind(reason: str) -> str:
     if "corrupt" in text or "sequence" in text:
         return "corruption"
     return reason[:64]          # a reporter's own word, kept
+
+
+def gap_rank(kind: str) -> int:
+    """Which kind an outage keeps when several reports name it (``GAP_KINDS_BY_RANK``: corruption, link,
+    suspension, crash/resume); a reporter's own word ranks as a link."""
+    return GAP_KINDS_BY_RANK.index(kind) if kind in GAP_KINDS_BY_RANK else 1
 
 
 def _last_sequence(kind: str, size: int, raw: bytes) -> int | None:
@@ -261,7 +326,9 @@ class FrameWriter:
         self._prev_seq: int | None = None
         self._prev_time: float | None = None       # stored time of the last frame
         self._prev_host: float | None = None       # its host time
-        self._jitter = 0.0                         # how far host stamps stray from the counted time, s
+        self._counted: _CountedClock | None = None    # the frames' time by the counter, against the host's
+        self._turn_check: _TurnCheck | None = None     # jumps whose hidden turns the next frames settle
+        self._suspensions: list[list[float | None]] = []   # recent [t_from, t_to or None] of the run's suspensions
         self._by_seq: dict[int, int] = {}          # recent gap rows (by id): frames lost by the counter alone
         self._take_over()
         _LIVE.add(self)
@@ -355,61 +422,111 @@ class FrameWriter:
         """The stored time of ``frame`` (strictly after the previous one), and a gap row when frames were
         lost before it.
 
-        Frames lost: the sequence counter's advance minus one, its wraps resolved with the elapsed host
-        time and the data rate (``(elapsed * rate - 1 - by_seq) / modulus`` whole turns); without a
-        counter, the elapsed time times the rate.  Turns are only counted when the host clock proves them
-        beyond the jitter of its stamps (decaying maximum of host minus counted time): a loss of more
-        than a turn hidden in that jitter is undercounted by whole turns.  Stored time: the previous stored time plus the
-        frames' advance over the rate, pulled gently (gain ``TIME_GAIN``) towards the host time: frames
-        taken off the line in one read share a host time, but left the device one period apart.  After
-        an outage (host time ahead by more than ``REANCHOR_S``) the host time is taken as it is."""
+        Frames lost: the sequence counter's advance minus one; without a counter, the elapsed time times
+        the rate.  Whole turns of the counter (a loss it cannot show) are counted with the data rate:
+        right away for an outage someone reported (a crash/resume, a link drop: its span is known), else
+        by the counted clock (``_CountedClock``) once the frames after the jump prove them - the host
+        stamps alone do not, since a host that reads late stamps old frames as new.  Stored time: the
+        previous stored time plus the frames' advance over the rate, pulled gently (gain ``TIME_GAIN``)
+        towards the host time: frames taken off the line in one read share a host time, but left the
+        device one period apart.  After an outage (host time ahead by more than ``REANCHOR_S``) the host
+        time is taken as it is."""
         host = frame.host_time
         prev_t, rate, mod = self._prev_time, self._rate, self.sequence_modulus
         prev_host, self._prev_host = self._prev_host, host
         if prev_t is None:
+            self._restart_count(host)
             return host
         # elapsed on the host clock between the frames' stamps (a read's frames share one stamp; the
         # stored times follow the counter, so they would see the read latency as lost frames)
         elapsed = host - (prev_host if prev_host is not None else prev_t)
         by_time = elapsed * rate - 1 if rate else None
-        if mod and self._prev_seq is not None:
-            by_seq = (frame.sequence - self._prev_seq - 1) % mod
-            # whole turns of the counter the host clock proves, beyond its own jitter (reads stamp late)
-            slack = 0.0 if self._outage is not None or not rate else max(self._jitter, self.STAMP_JITTER_S) * rate
-            turns = max(0, round((by_time - by_seq - slack) / mod)) if by_time is not None else 0
-            missing: int | None = by_seq + mod * turns
-        else:
+        known = self._outage is not None
+        by_seq = (frame.sequence - self._prev_seq - 1) % mod if mod and self._prev_seq is not None else None
+        room = max(0, round((by_time - by_seq) / mod)) if by_seq is not None and by_time is not None else 0
+        if by_seq is None:
             missing = max(0, round(by_time)) if by_time is not None else None
+        else:
+            missing = by_seq + mod * room if known else by_seq
         if rate:
             predicted = prev_t + ((missing or 0) + 1) / rate
             error = host - predicted
-            if error <= self.REANCHOR_S:
-                self._jitter = max(abs(error), self._jitter * self.JITTER_DECAY)
             t = host if error > self.REANCHOR_S else predicted + self.TIME_GAIN * error
             t = max(t, prev_t + 0.5 / rate)
         else:
             t = max(host, prev_t + self.MIN_STEP_S)
-        if self._outage is not None or missing:
-            if self._outage is not None:
-                kind, t_from = self._outage.kind, min(self._outage.t_from, prev_t)
-            else:        # a second's worth of frames or more: the line was down or silent, not noisy
-                kind, t_from = ("link" if (missing is not None and rate and missing >= rate * self.REANCHOR_S)
-                                or (not rate and elapsed > self.REANCHOR_S) else "corruption"), prev_t
-            row = {"run_id": self.run_id, "t_from": t_from, "t_to": t, "reason": kind, "frames_missing": missing,
-                   "after_index": self._next_index - 1}
-            self._queue_row("gaps", row)
-            if mod and self._prev_seq is not None:
-                self._by_seq[id(row)] = (frame.sequence - self._prev_seq - 1) % mod
-                while len(self._by_seq) > 256:
-                    self._by_seq.pop(next(iter(self._by_seq)))
+        if known:
+            kind, t_from = self._outage.kind, min(self._outage.t_from, prev_t)
             self._outage = None
+            self._settle_turns()
+            self._restart_count(host)
+            self._queue_gap(self._gap_row(t_from, t, kind, missing), by_seq)
+            return t
+        counted = self._counted
+        offset = counted.advance((missing or 0) + 1, host) if counted is not None else None
+        if room and counted is not None:            # turns may hide in this jump: the next frames settle them
+            row = self._gap_row(prev_t, t, "corruption", by_seq)
+            if self._turn_check is None:
+                self._turn_check = _TurnCheck(counted.floor)
+            self._turn_check.see(offset)
+            self._turn_check.join(row, room, offset, counted.n + round(self.TURN_SETTLE_S * rate))
+            return t
+        if missing:
+            self._queue_gap(self._gap_row(prev_t, t, "corruption", missing), by_seq)
+        check = self._turn_check
+        if check is None:
+            if counted is not None:
+                counted.note(offset)
+        else:
+            check.see(offset)
+            if counted.n >= check.until_n or len(check.rows) >= self.MAX_UNSETTLED:
+                self._settle_turns()
         return t
 
     TIME_GAIN = 0.02            # per frame: the stored clock follows the host clock over ~50 frames
     REANCHOR_S = 1.0            # host time this far ahead of the counted time: an outage, restart from it
-    STAMP_JITTER_S = 1.0        # host stamps may lag by up to a read: shorter silences prove no wrap
-    JITTER_DECAY = 0.9999       # per frame: the host stamps' jitter estimate forgets over ~10^4 frames
+    TURN_SETTLE_S = 5.0         # bench s of frames after a jump that show whether whole turns were lost
+    MAX_UNSETTLED = 64          # jumps waiting for that at most (each frame updates each of them)
     MIN_STEP_S = 2e-6           # without a rate: stored times still strictly increase (1 us resolution)
+
+    def _restart_count(self, host: float) -> None:
+        rate, mod = self._rate, self.sequence_modulus
+        self._counted = _CountedClock(host, rate) if rate and mod else None
+
+    def _gap_row(self, t_from: float, t_to: float, kind: str, missing: int | None) -> dict[str, Any]:
+        return {"run_id": self.run_id, "t_from": t_from, "t_to": t_to, "reason": kind, "frames_missing": missing,
+                "after_index": self._next_index - 1}
+
+    def _queue_gap(self, row: dict[str, Any], by_seq: int | None) -> None:
+        """Queue a gap row; a second's worth of frames or more lost without a reported outage: the line
+        was down or silent (``link``), not noisy."""
+        rate, missing = self._rate, row["frames_missing"]
+        if row["reason"] == "corruption" and missing is not None and rate and missing >= rate * self.REANCHOR_S:
+            row["reason"] = "link"
+        row["reason"] = self._suspension_kind(row["reason"], row["t_from"], row["t_to"])
+        self._queue_row("gaps", row)
+        if by_seq is not None:
+            self._by_seq[id(row)] = by_seq
+            while len(self._by_seq) > 256:
+                self._by_seq.pop(next(iter(self._by_seq)))
+
+    def _settle_turns(self) -> None:
+        """Close the open turn check: add the whole turns it shows to its jumps' rows, count them in the
+        counted clock, queue the rows."""
+        check, counted = self._turn_check, self._counted
+        if check is None:
+            return
+        self._turn_check = None
+        assert counted is not None and self.sequence_modulus and self._rate
+        mod, turn_s = self.sequence_modulus, self.sequence_modulus / self._rate
+        turns = check.turns(turn_s)
+        counted.n += mod * sum(turns)
+        counted.floor = min(counted.floor, check.rows[-1][2] - sum(turns) * turn_s)
+        for (row, _, _), n in zip(check.rows, turns):
+            by_seq = row["frames_missing"]
+            row["frames_missing"] = by_seq + mod * n
+            if row["frames_missing"]:
+                self._queue_gap(row, by_seq)
 
     def record_gap(self, t_from: float, t_to: float, reason: str, frames_missing: int | None = None) -> None:
         """Record a known outage (a link gap from ``LinkStats.link_gaps``, the engine's interruption on
@@ -418,22 +535,16 @@ class FrameWriter:
         counts its frames.  ``frames_missing`` given: stored as is in a row of its own."""
         if not t_to >= t_from:
             raise ValueError(f"gap t_to {t_to} is before t_from {t_from}")
-        kind = gap_kind(reason)
         with self._cond:
             self._check_usable()
+            kind = self._suspension_kind(gap_kind(reason), t_from, t_to)
             if frames_missing is None:
-                for row in reversed(self._rows["gaps"]):
-                    if row["t_from"] <= t_to and row["t_to"] >= t_from and row["reason"] in ("corruption", "link"):
-                        row["reason"] = kind
-                        by_seq, mod, rate = self._by_seq.get(id(row)), self.sequence_modulus, self._rate
-                        if by_seq is not None and mod and rate:     # the outage's own span settles the wraps
-                            span = (max(t_to, row["t_to"]) - min(t_from, row["t_from"])) * rate - 1
-                            row["frames_missing"] = by_seq + mod * max(0, round((span - by_seq) / mod))
-                        return
+                if self._relabel_gap(t_from, t_to, kind):
+                    return
                 if self._prev_time is None or t_to >= self._prev_time:
                     start = t_from if self._outage is None else min(t_from, self._outage.t_from)
-                    self._outage = _Outage(kind if self._outage is None or kind != "link" else self._outage.kind,
-                                           start)
+                    self._outage = _Outage(kind if self._outage is None else max(kind, self._outage.kind,
+                                                                                          key=gap_rank), start)
                     return
                 log.warning("run %s: %s outage %.3f-%.3f reported after its frames were stored; its frames "
                             "are counted in the row of the sequence jump", self.run_id, kind, t_from, t_to)
@@ -441,6 +552,52 @@ class FrameWriter:
             self._queue_row("gaps", {"run_id": self.run_id, "t_from": float(t_from), "t_to": float(t_to),
                                      "reason": kind, "frames_missing": frames_missing,
                                      "after_index": self._next_index - 1 if self._next_index else None})
+
+    def begin_suspension(self, t_from: float) -> None:
+        """The run is suspended from bench time ``t_from`` (``end_suspension`` closes it): frames that stop
+        meanwhile were lost to the suspension, and their gap row says so (kind ``suspension``, not
+        ``link``); a noisy line while suspended is still ``corruption``."""
+        with self._cond:
+            self._suspensions.append([float(t_from), None])
+            del self._suspensions[:-16]
+
+    def end_suspension(self, t_to: float) -> None:
+        with self._cond:
+            if self._suspensions and self._suspensions[-1][1] is None:
+                self._suspensions[-1][1] = float(t_to)
+
+    def _suspension_kind(self, kind: str, t_from: float, t_to: float) -> str:
+        """``suspension`` for an outage of a link's rank or less that overlaps a suspension, else ``kind``."""
+        if gap_rank(kind) > gap_rank("link") or kind == "corruption":
+            return kind
+        for a, b in self._suspensions:
+            if a <= t_to and (b is None or b >= t_from):
+                return "suspension"
+        return kind
+
+    def _relabel_gap(self, t_from: float, t_to: float, kind: str) -> bool:
+        """The queued (or still unsettled) gap row that a reported outage ``t_from``-``t_to`` overlaps is
+        that outage's row: it takes the higher ranked kind of the two (``gap_rank``), and the outage's own
+        span settles its counter's turns; False: none overlaps."""
+        check = self._turn_check
+        pending = [entry[0] for entry in check.rows] if check is not None else []
+        for row in [*reversed(pending), *reversed(self._rows["gaps"])]:
+            if not (row["t_from"] <= t_to and row["t_to"] >= t_from):
+                continue
+            unsettled = any(r is row for r in pending)
+            by_seq = row["frames_missing"] if unsettled else self._by_seq.get(id(row))
+            mod, rate = self.sequence_modulus, self._rate
+            if by_seq is not None and mod and rate:
+                span = (max(t_to, row["t_to"]) - min(t_from, row["t_from"])) * rate - 1
+                row["frames_missing"] = by_seq + mod * max(0, round((span - by_seq) / mod))
+            row["reason"] = max(row["reason"], kind, key=gap_rank)
+            if unsettled:                            # known now: it waits for no more evidence
+                check.rows = [entry for entry in check.rows if entry[0] is not row]
+                if not check.rows:
+                    self._turn_check = None
+                self._queue_gap(row, by_seq)
+            return True
+        return False
 
     def add_probe_readings(self, t: float, readings: Iterable[ProbeReading]) -> None:
         with self._cond:
@@ -734,8 +891,11 @@ class FrameWriter:
         """Write everything accepted so far (including the open chunk) and wait until committed.
 
         Raises ``StorageUnavailable`` if that does not happen within ``timeout`` wall seconds (the data
-        stays buffered and is retried), or the writer's fatal error.
+        stays buffered and is retried), or the writer's fatal error.  Gap rows still waiting to learn
+        whether whole counter turns were lost are settled with the frames seen so far.
         """
+        with self._cond:
+            self._settle_turns()
         if self._thread is None:
             while True:
                 with self._cond:

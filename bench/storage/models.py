@@ -282,6 +282,9 @@ class Segment(Base):
 
 
 GAP_KINDS = ("link", "corruption", "crash_resume", "suspension")
+# when reports of one outage disagree, the later kind in this order wins (a crash/resume explains a
+# suspension's silence, which explains a link's, which explains a sequence jump)
+GAP_KINDS_BY_RANK = ("corruption", "link", "suspension", "crash_resume")
 
 
 class Gap(Base):
