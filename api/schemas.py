@@ -21,7 +21,6 @@ ProcedureName = Literal[PROCEDURE_MODULES]
 # a registered model name or a formula (bench.fit.formula grammar and limits)
 MODEL_FORMAT = "gyrobench-model"
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
-GyroId = Field(..., pattern=ID_PATTERN, description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-'")
 
 
 class _Body(BaseModel):
@@ -42,15 +41,35 @@ class _Body(BaseModel):
         return data
 
 
+GYRO_IN_SLOT_PATTERN = r"^([A-Za-z0-9][A-Za-z0-9._-]{0,63}=)?[A-Za-z0-9][A-Za-z0-9._-]{0,63}$"
+
+
 class RunCreate(_Body):
+    # exactly one of gyro_id / gyro_ids, said in the schema too
+    model_config = ConfigDict(**_Body.model_config,
+                              json_schema_extra={"oneOf": [{"required": ["gyro_id"]}, {"required": ["gyro_ids"]}]})
+
     procedure: ProcedureName = Field(..., description="a name from GET /procedures")
-    gyro_id: str = GyroId
+    # absent, never null: the schema's oneOf counts a present key (the default None is not validated)
+    gyro_id: str = Field(  # type: ignore[assignment]
+        None, pattern=ID_PATTERN,
+        description="gyro serial / ID: 1-64 letters, digits, '.', '_' or '-' (one gyro; give this or gyro_ids)")
+    gyro_ids: list[Annotated[str, Field(pattern=GYRO_IN_SLOT_PATTERN)]] = Field(  # type: ignore[assignment]
+        None, min_length=1, max_length=64, description=(
+            "several gyros in one chamber (a bench whose config lists gyro slots): each 'ID' (the next free "
+            "slot) or 'SLOT=ID'; the run gets one run per gyro, listed under units"))
     bench: str = Field(..., pattern=ID_PATTERN, description="a bench name from GET /benches")
     params: dict[str, Any] = Field(default_factory=dict,
                                    description="procedure parameters; see GET /procedures for schema and defaults")
     start_at: dt.datetime | None = Field(None, description="scheduled start (ISO 8601 with a time zone); "
                                                            "the run waits in the queue until then")
     operator: str | None = Field(None, max_length=64, description="who starts the run (for the records)")
+
+    @model_validator(mode="after")
+    def _one_of(self) -> "RunCreate":
+        if (self.gyro_id is None) == (self.gyro_ids is None):
+            raise ValueError("give exactly one of gyro_id (one gyro) / gyro_ids (several gyros in one chamber)")
+        return self
 
     @field_validator("start_at")
     @classmethod

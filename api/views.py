@@ -9,6 +9,7 @@ import numpy as np
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
+from bench.storage import queries
 from bench.storage.db import Database
 from bench.storage.models import (Bench, FrameCursor, Gap, ProbeReadingRow, Run, RunRequest, Step, Suspension,
                                   Telemetry, utcnow)
@@ -55,6 +56,7 @@ def run_summary(run: Run, bench_name: str | None, stale_after_s: float) -> dict[
         "eta_utc": live.get("eta_utc") if active else None,
         "worker": run.worker, "worker_alive": fresh(run.heartbeat_at, stale_after_s) if active else None,
         "heartbeat_at": iso(run.heartbeat_at), "error": run.error,
+        "parent_id": run.parent_id, "slot": run.slot, "status_reason": live.get("status_reason"),
     }
 
 
@@ -88,7 +90,18 @@ def run_detail(session: Session, db: Database, run: Run, bench_name: str | None,
     from bench.storage.sampling import sampling_summary
 
     doc["sampling"] = sampling_summary(db, run.id, max_age_s=0.0 if run.status in TERMINAL else 5.0)
+    doc["units"] = [unit_state(session, db, unit) for unit in queries.unit_runs(session, run.id)]
     return doc
+
+
+def unit_state(session: Session, db: Database, unit: Run) -> dict[str, Any]:
+    """One gyro of a multi-gyro run: its own run's state, gaps and latest readings."""
+    gaps = session.scalars(select(Gap).where(Gap.run_id == unit.id).order_by(Gap.t_from)).all()
+    return {"slot": unit.slot, "run_id": unit.id, "gyro_id": unit.gyro_id, "status": unit.status,
+            "outcome": (unit.live or {}).get("outcome"), "error": unit.error,
+            "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason} for g in gaps],
+            "bench_seconds_lost": float(sum(g.t_to - g.t_from for g in gaps)),
+            "latest": latest_readings(session, db, unit.id)}
 
 
 def latest_readings(session: Session, db: Database, run_id: int) -> dict[str, Any]:

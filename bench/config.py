@@ -100,6 +100,37 @@ class PsuConfig(_Strict):
     current_limit_a: float = Field(1.5, ge=0)
 
 
+class SlotPower(_Strict):
+    """How one gyro slot is powered: a channel of the bench's multi-channel SCPI supply (``channel``:
+    ``INST:NSEL n`` then ``OUTP`` / ``VOLT`` / ``MEAS``) or a supply of its own (``psu``)."""
+
+    channel: int | None = Field(None, ge=1, le=64)
+    psu: PsuConfig | None = None
+    voltage_v: float | None = Field(None, ge=0)          # default: the supply's (bench ``psu``) setting
+    current_limit_a: float | None = Field(None, ge=0)
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "SlotPower":
+        if (self.channel is None) == (self.psu is None):
+            raise ValueError("give exactly one of channel (a channel of the bench supply) / psu (its own supply)")
+        return self
+
+
+class GyroSlot(_Strict):
+    """One gyro position of a multi-gyro fixture: its line, its probes, its power and its mounting.
+
+    ``mounting``: the gyro's body axes relative to the inner gimbal at rest, as
+    ``TurntableGeometry.mounting``; every slot of one fixture must realise the procedure's positions,
+    so the slots share the bench's mounting unless the fixture turns a unit on purpose (its segments
+    are then labelled with the orientation *its* axes reach)."""
+
+    slot: str = Field(pattern=r"^[A-Za-z0-9_-]{1,32}$")
+    gyro: GyroConfig
+    probes: ProbeConfig = ProbeConfig()
+    power: SlotPower
+    mounting: str | None = None                           # default: turntable.geometry.mounting
+
+
 class SafeStateConfig(_Strict):
     chamber: Literal["setpoint", "hold"] = "setpoint"
     chamber_setpoint_c: float = 25.0
@@ -139,6 +170,16 @@ class SuspendRule(_Strict):
         return self
 
 
+def _check_channel_map(gyro: GyroConfig, probes: ProbeConfig, where: str) -> None:
+    for ch, probe in gyro.channel_probes.items():
+        if ch not in gyro.channels:
+            raise ValueError(f"{where}.channel_probes: unknown channel {ch!r} ({where}.channels: "
+                             f"{', '.join(gyro.channels)})")
+        if probe not in probes.probes:
+            raise ValueError(f"{where}.channel_probes.{ch}: {probe!r} is not a configured probe (probes.probes: "
+                             f"{', '.join(sorted(probes.probes)) or 'none'})")
+
+
 class BenchConfig(_Strict):
     name: str = "bench1"
     latitude_deg: float = Field(45.75, ge=-90, le=90)
@@ -150,22 +191,78 @@ class BenchConfig(_Strict):
     safe_state: SafeStateConfig = SafeStateConfig()
     gyro_limits: GyroLimits = GyroLimits()
     suspend: list[SuspendRule] = Field(default_factory=list)   # added to the bench's own suspend conditions
+    # several gyros in one chamber: one entry per slot (empty: the single gyro of ``gyro`` / ``probes``
+    # / ``psu``).  ``psu`` is then the multi-channel supply the slots' ``power.channel`` select.
+    gyros: list[GyroSlot] = Field(default_factory=list)
+    # what a fault of one unit (its line, probes or supply) does: ``continue`` marks that unit and lets
+    # the others go on; ``suspend`` suspends the whole run as a single-gyro fault does
+    unit_faults: Literal["continue", "suspend"] = "continue"
 
     @model_validator(mode="after")
     def _check_channel_probes(self) -> "BenchConfig":
-        for ch, probe in self.gyro.channel_probes.items():
-            if ch not in self.gyro.channels:
-                raise ValueError(f"gyro.channel_probes: unknown channel {ch!r} (gyro.channels: "
-                                 f"{', '.join(self.gyro.channels)})")
-            if probe not in self.probes.probes:
-                raise ValueError(f"gyro.channel_probes.{ch}: {probe!r} is not a configured probe (probes.probes: "
-                                 f"{', '.join(sorted(self.probes.probes)) or 'none'})")
+        _check_channel_map(self.gyro, self.probes, "gyro")
+        owner: dict[tuple[str, str], str] = {}      # (what, value) -> the slot using it
+        for k, slot in enumerate(self.gyros):
+            _check_channel_map(slot.gyro, slot.probes, f"gyros.{k}.gyro")
+            used = [("slot", slot.slot), ("gyro.url", slot.gyro.url),
+                    *(("probe serial", serial) for serial in slot.probes.probes.values())]
+            if slot.power.channel is not None:
+                used.append(("power.channel", str(slot.power.channel)))
+            for what, value in used:
+                if (what, value) in owner:
+                    raise ValueError(f"gyros.{k}: {what} {value!r} is already used by slot {owner[what, value]!r}")
+                owner[what, value] = slot.slot
         for k, rule in enumerate(self.suspend):
             name = rule.signal.removeprefix("probe:")
             if rule.signal.startswith("probe:") and self.probes.probes and name not in self.probes.probes:
                 raise ValueError(f"suspend.{k}.signal: {name!r} is not a configured probe (probes.probes: "
                                  f"{', '.join(sorted(self.probes.probes))})")
         return self
+
+    @property
+    def multi(self) -> bool:
+        """True when the bench carries a list of gyro slots (``gyros``)."""
+        return bool(self.gyros)
+
+    def slot(self, name: str) -> GyroSlot:
+        for slot in self.gyros:
+            if slot.slot == name:
+                return slot
+        raise KeyError(f"no gyro slot {name!r} (slots: {', '.join(s.slot for s in self.gyros) or 'none'})")
+
+    def assign_gyros(self, gyro_ids: list[str]) -> list[tuple[str, str]]:
+        """(slot, gyro id) for the gyros a run names on this multi-gyro bench: ``SLOT=ID`` puts gyro ID in
+        that slot, a plain ``ID`` takes the next free slot in fixture order."""
+        if not self.gyros:
+            raise ValueError("this bench carries one gyro (no gyros list in its config): name one gyro")
+        if not gyro_ids:
+            raise ValueError(f"name at least one gyro (slots: {', '.join(s.slot for s in self.gyros)})")
+        placed: dict[str, str] = {}
+        plain = []
+        for item in gyro_ids:
+            slot, sep, gyro = item.partition("=")
+            if not sep:
+                plain.append(item)
+                continue
+            self.slot(slot)     # KeyError naming the slots
+            if slot in placed:
+                raise ValueError(f"slot {slot!r} is given two gyros ({placed[slot]!r}, {gyro!r})")
+            placed[slot] = gyro
+        free = [s.slot for s in self.gyros if s.slot not in placed]
+        if len(plain) > len(free):
+            raise ValueError(f"{len(gyro_ids)} gyros named but the bench has {len(self.gyros)} slots "
+                             f"({', '.join(s.slot for s in self.gyros)})")
+        placed.update(zip(free, plain))
+        ids = list(placed.values())
+        for gyro in ids:
+            if not gyro or ids.count(gyro) > 1:
+                raise ValueError(f"gyro id {gyro!r} is empty or named twice")
+        return [(s.slot, placed[s.slot]) for s in self.gyros if s.slot in placed]
+
+    def slot_mounting(self, slot: GyroSlot) -> TurntableGeometry:
+        """The table geometry as seen by ``slot``'s body axes (its own mounting, if any)."""
+        geo = self.turntable.geometry
+        return geo if slot.mounting in (None, geo.mounting) else geo.model_copy(update={"mounting": slot.mounting})
 
     @classmethod
     def load(cls, path: str | Path) -> "BenchConfig":

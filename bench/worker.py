@@ -190,8 +190,8 @@ class Worker(LeaseHolder):
                 | (Bench.heartbeat_at < limit)).values(worker=self.worker_id, heartbeat_at=now)).rowcount
             if took != 1:
                 return None
-            active = s.scalars(select(Run).where(Run.bench_id == bench.id, Run.status.in_(ACTIVE))
-                               .order_by(Run.id)).all()
+            active = s.scalars(select(Run).where(Run.bench_id == bench.id, Run.status.in_(ACTIVE),
+                                                 Run.parent_id.is_(None)).order_by(Run.id)).all()
             for run in active:
                 if run.worker != self.worker_id and _as_utc(run.heartbeat_at) is not None \
                         and _as_utc(run.heartbeat_at) >= limit:
@@ -202,6 +202,7 @@ class Worker(LeaseHolder):
                     (Run.heartbeat_at.is_(None)) | (Run.heartbeat_at < limit) | (Run.worker == self.worker_id))
                     .values(worker=self.worker_id, heartbeat_at=now)).rowcount
                 if got == 1:
+                    queries.own_units(s, run.id, self.worker_id, now)
                     queries.add_event(s, run.id, "worker_takeover",
                                       f"worker {self.worker_id} takes over run {run.id} from "
                                       f"{run.worker or 'nobody'} (heartbeat stale) and resumes it",

@@ -43,13 +43,19 @@ def test_full_run_records_labelled_data_and_ends_in_safe_state():
     assert ("ramp_to", (20.0, 1.0)) in [(c[1], c[2]) for c in bench.thermal.calls]
     assert any(e["kind"] == "stable" for e in run.events)
     # telemetry and probes were logged periodically
-    # (every 5 s / 2 s; plain soaks tick every 10 s, so a due read may wait up to one soak tick)
+    # (chamber every 5 s, table / PSU every 10 s, probes every 2 s; plain soaks tick every 10 s, so a
+    # due read may wait up to one soak tick)
     tel_t = [t for t, _ in run.telemetry]
     assert max(b - a for a, b in zip(tel_t, tel_t[1:])) <= 5.0 + 10.0
     assert sum(1 for a, b in zip(tel_t, tel_t[1:]) if b - a <= 5.0 + 1e-6) > 0.8 * len(tel_t)
+    table_t = [t for t, v in run.telemetry if v["turntable"]]
+    assert max(b - a for a, b in zip(table_t, table_t[1:])) <= 10.0 + 10.0
+    assert sum(1 for a, b in zip(table_t, table_t[1:]) if b - a <= 10.0 + 1e-6) > 0.8 * len(table_t)
+    assert len(table_t) < 0.7 * len(tel_t)          # not read at every chamber read
     last = run.telemetry[-1][1]
-    assert last["chamber"].pv_c == pytest.approx(bench.thermal.pv, abs=2.0) and set(last["turntable"]) == {1, 2}
-    assert any(v["psu"].on and v["psu"].volts == 28.0 for _, v in run.telemetry)
+    assert last["chamber"].pv_c == pytest.approx(bench.thermal.pv, abs=2.0)
+    assert set(next(v["turntable"] for _, v in reversed(run.telemetry) if v["turntable"])) == {1, 2}
+    assert any(v["psu"] is not None and v["psu"].on and v["psu"].volts == 28.0 for _, v in run.telemetry)
     assert {s["kind"] for s in run.segments} == {"record", "ramp"}
     probe_t = sorted({t for t, _ in run.probes})
     assert max(b - a for a, b in zip(probe_t, probe_t[1:])) <= 2.0 + 10.0

@@ -138,3 +138,34 @@ def test_hac_wald_test_chi2_rejects_a_real_term_and_not_a_junk_one():
     junk = signal.hac_wald_test(x, y, [2])
     assert real.distribution == "chi2" and real.df == 1
     assert real.p_value < 1e-6 and junk.p_value > 1e-3
+
+
+def test_ols_hac_wald_and_ljung_box_agree_with_statsmodels():
+    import statsmodels.api as sm
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    rng = np.random.default_rng(11)
+    n = 300
+    e = np.zeros(n)
+    for i in range(1, n):                       # AR(1) errors: the case HAC exists for
+        e[i] = 0.7 * e[i - 1] + rng.normal()
+    x = np.column_stack([np.ones(n), np.linspace(-1, 1, n), rng.normal(size=n), np.sin(np.arange(n) / 9.0)])
+    y = x @ np.array([1.0, 0.5, 0.0, 0.3]) + e
+    ours = signal.ols_hac(x, y, maxlags=7)
+    ref = sm.OLS(y, x).fit(cov_type="HAC", cov_kwds={"maxlags": 7})
+    np.testing.assert_allclose(ours.params, ref.params, rtol=1e-10)
+    np.testing.assert_allclose(ours.cov, ref.cov_params(), rtol=1e-9)
+    np.testing.assert_allclose(ours.pvalues, ref.pvalues, rtol=1e-8)
+    r = np.zeros((2, 4))
+    r[0, 2] = r[1, 3] = 1.0
+    want = ref.wald_test(r, scalar=True, use_f=False)
+    scale = np.sqrt(np.mean(x ** 2, axis=0))
+    got = signal.hac_wald_test(x * scale, y, [2, 3], maxlags=7)   # scaling does not change the test
+    assert got.statistic == pytest.approx(float(want.statistic), rel=1e-8)
+    assert got.p_value == pytest.approx(float(want.pvalue), rel=1e-6)
+    q, p = signal.ljung_box(e, 10)
+    lb = acorr_ljungbox(e - e.mean(), lags=[10], return_df=True)
+    assert q == pytest.approx(float(lb["lb_stat"].iloc[0]), rel=1e-10)
+    assert p == pytest.approx(float(lb["lb_pvalue"].iloc[0]), rel=1e-8, abs=1e-300)
+    with pytest.raises(ValueError, match="ljung_box"):
+        signal.ljung_box(np.ones(50), 5)

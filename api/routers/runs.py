@@ -65,10 +65,19 @@ def create_run(body: RunCreate, request: Request, response: Response, db: Databa
         procedures.check_duration(estimate)
     except PlanError as exc:
         raise Problem(422, "Plan refused", f"{body.procedure} on bench {body.bench}: {exc}") from None
+    units, gyro_id = None, body.gyro_id
+    if not config.multi and body.gyro_ids is not None and len(body.gyro_ids) == 1 and "=" not in body.gyro_ids[0]:
+        gyro_id = body.gyro_ids[0]             # one gyro on a one-gyro bench: the simple case
+    elif body.gyro_ids is not None or config.multi:
+        try:
+            units = config.assign_gyros(body.gyro_ids if body.gyro_ids is not None else [body.gyro_id])
+        except (ValueError, KeyError) as exc:
+            raise Problem(422, "Gyros refused", f"bench {body.bench}: {str(exc).strip(chr(39) + chr(34))}") from None
     with db.session() as s:
         run = queries.create_run(s, procedure=body.procedure, parameters=params.model_dump(mode="json"),
                                  config_snapshot=config_doc, operator=body.operator or who.name,
-                                 gyro_id=body.gyro_id, bench_name=body.bench, start_at=body.start_at)
+                                 gyro_id=None if units else gyro_id, bench_name=body.bench,
+                                 start_at=body.start_at, units=units)
         run.live = {"summary": estimate}
         queries.add_event(s, run.id, "queued", f"run queued by {who.name} on bench {body.bench}"
                           + (f", scheduled for {iso(body.start_at)}" if body.start_at else ""))

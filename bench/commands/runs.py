@@ -1,6 +1,6 @@
 """``bench run``, ``bench resume``, ``bench runs list|show`` and ``bench export``.
 
-``bench run PROCEDURE --gyro ID [--sim] [--speed K] [--param key=value ...] [--json]``
+``bench run PROCEDURE --gyro ID [--gyro ID ...] [--sim [--sim-gyros N]] [--speed K] [--param key=value ...] [--json]``
     Validates the parameters through the procedure's pydantic ``Params`` (``--param stable.tol_c=0.5``
     reaches nested fields; values are JSON when they parse as JSON, else text; ``key=null`` gives
     None), builds and validates the plan against the bench (a bad plan is refused with the reason
@@ -12,6 +12,10 @@
     ``$BENCH_CONFIG`` and time is real, or with ``--sim-endpoints FILE`` from a simulated bench running in
     another process (``bench sim up --endpoints-json FILE``: its bench config and clock; the simulator
     then has a CPU core of its own).
+    Several gyros in one chamber: ``--gyro`` repeated (``--gyro ID`` takes the next free slot of the
+    bench config's ``gyros`` list, ``--gyro SLOT=ID`` a given one); with ``--sim`` a ``MultiGyroBench``
+    with ``--sim-gyros N`` units (default: one per ``--gyro`` when more than one is named).  The run is
+    a parent run with one run per gyro (``bench runs show`` lists them under ``units``).
     Ctrl-C (SIGINT) asks the engine to stop after the current recording; a second Ctrl-C or SIGTERM
     aborts to the safe state at once.  Exit code 0 when the run completed (or stopped on request),
     1 when it was aborted or failed, 2 for refused input.
@@ -234,9 +238,13 @@ def _finish(db, run_id: int, status: str, as_json: bool) -> None:
            "step": report["step"], "n_steps": report["n_steps"], "progress": report["progress"],
            "frames": report["frames"], "frames_lost": report["frames_lost"],
            "bench_seconds_lost": report["bench_seconds_lost"], "segments": report["segments"], "gaps": report["gaps"],
-           "suspensions": report["suspensions"], "fits": report["fits"]}
+           "suspensions": report["suspensions"], "fits": report["fits"],
+           "status_reason": report["status_reason"], "units": report["units"]}
     typer.secho(f"run {run_id} {status}: {report['frames']} frames, {len(report['gaps'])} gaps, "
-                f"{len(report['suspensions'])} suspensions" + (f"; {report['error']}" if report["error"] else ""),
+                f"{len(report['suspensions'])} suspensions" + (f"; {report['error']}" if report["error"] else "")
+                + "".join(f"\n  {u['slot']} gyro {u['gyro_id']} (run {u['run_id']}): {u['status']}, {u['frames']} "
+                          f"frames, {len(u['gaps'])} gaps" + (f"; {u['error']}" if u["error"] else "")
+                          for u in report["units"]),
                 err=True, fg=typer.colors.GREEN if status in ("completed", "stopped") else typer.colors.RED)
     if as_json:
         sys.stdout.write(json.dumps(doc, allow_nan=False) + "\n")
@@ -264,15 +272,37 @@ def _attach_sim(path: str):
 
 def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
     return {"speed": speed, "scenario": scenario, "seed": sim.seed, "data_rate_hz": sim.data_rate_hz,
-            "clock": sim.clock.to_json(), "chamber_transport": chamber_transport}
+            "clock": sim.clock.to_json(), "chamber_transport": chamber_transport,
+            "units": len(getattr(sim, "units", ())) or None}
+
+
+def _sim_bench(units: int | None, **kwargs: Any):
+    from bench.sim.multibench import simulated_bench
+
+    return simulated_bench(units, **kwargs)
+
+
+def _units_for(config, gyros: list[str]) -> list[tuple[str, str]] | None:
+    """(slot, gyro id) of a multi-gyro bench, or None (one gyro, the simple case)."""
+    if not config.multi:
+        if len(gyros) != 1:
+            fail(f"--gyro given {len(gyros)} times but this bench carries one gyro (its config has no gyros list)")
+        return None
+    try:
+        return config.assign_gyros(gyros)
+    except (ValueError, KeyError) as exc:
+        fail(f"--gyro: {str(exc).strip(chr(34) + chr(39))}")
 
 
 # ---- bench run -------------------------------------------------------------------------------------
 @guarded
 def run_command(
     procedure: str = typer.Argument(..., help="eight_position, thermal_ramp, rate_cycle, hrg_calibration, fog_startup"),
-    gyro: str = typer.Option(..., "--gyro", help="ID of the gyro under test"),
+    gyro: list[str] = typer.Option(..., "--gyro", help="ID of the gyro under test; repeat for several gyros in one "
+                                   "chamber (ID: the next free slot; SLOT=ID: that slot)"),
     sim: bool = typer.Option(False, "--sim", help="start a simulated bench in this process"),
+    sim_gyros: Optional[int] = typer.Option(None, "--sim-gyros", min=1, max=64, help="simulated bench: this many "
+                                            "gyros in one chamber (default: one per --gyro when several)"),
     speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per "
                               "wall second, or 'max' (as fast as the host can; the data are the same)"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench: scenario name or JSON file"),
@@ -312,7 +342,7 @@ def run_command(
         except ValueError as exc:
             fail(str(exc))
         from bench.config import BenchConfig
-        from bench.sim.bench import SimulatedBench, lockstep_clock
+        from bench.sim.bench import lockstep_clock
 
         lockstep = lockstep_clock(pace, seed)
         # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
@@ -322,7 +352,8 @@ def run_command(
         # the simulated bench keeps the default limits and table geometry: refuse a bad plan before
         # starting it (checked again below against the started bench's own config)
         procedures.check_duration(plan_summary(plan, BenchConfig(), engine_config_for(lockstep)))
-        bench = SimulatedBench(clock=lockstep, scenario=scenario, data_rate_hz=data_rate, seed=seed).start()
+        units = sim_gyros or (len(gyro) if len(gyro) > 1 else None)
+        bench = _sim_bench(units, clock=lockstep, scenario=scenario, data_rate_hz=data_rate, seed=seed).start()
         config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
     elif sim_endpoints:
         config, clock = _attach_sim(sim_endpoints)
@@ -336,11 +367,13 @@ def run_command(
         launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
                   "sim": _sim_launch(bench, pace, scenario, chamber_transport) if bench else None,
                   "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None}
+        units = _units_for(config, gyro)
         run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
-                         config_snapshot=config.model_dump(mode="json"), gyro_id=gyro, bench_name=config.name,
-                         operator=operator, launch=launch)
+                         config_snapshot=config.model_dump(mode="json"), gyro_id=None if units else gyro[0],
+                         bench_name=config.name, operator=operator, launch=launch, units=units)
         _announce(run_id, as_json)
-        typer.echo(f"{module.NAME} on gyro {gyro}: {summary['n_steps']} steps, about "
+        named = ", ".join(f"{g} ({slot})" for slot, g in units) if units else gyro[0]
+        typer.echo(f"{module.NAME} on gyro{'s' if units else ''} {named}: {summary['n_steps']} steps, about "
                    f"{summary['total_bench_h']:.2f} h of bench time"
                    + ((f" (simulated bench in lockstep, at most x{pace:g}: at least "
                        f"{summary['total_bench_s'] / pace:.0f} s wall)" if pace else
@@ -394,8 +427,6 @@ def resume_command(
     sim_info = live.get("sim")
     bench = None
     if sim_info:
-        from bench.sim.bench import SimulatedBench
-
         if sim_info["clock"].get("kind") == "lockstep":
             # a fresh lockstep clock: the engine puts the checkpointed bench state back and lets the
             # outage pass in bench time before the run continues
@@ -403,14 +434,14 @@ def resume_command(
 
             clock = lockstep_clock(sim_info.get("speed"), sim_info.get("seed"))
             clock.fixed_outage_s = outage
-            bench = SimulatedBench(clock=clock, scenario=sim_info["scenario"], seed=sim_info.get("seed"),
-                                   data_rate_hz=int(sim_info["data_rate_hz"])).start()
+            bench = _sim_bench(sim_info.get("units"), clock=clock, scenario=sim_info["scenario"],
+                               seed=sim_info.get("seed"), data_rate_hz=int(sim_info["data_rate_hz"])).start()
         else:
             clock = clock_from_json(sim_info["clock"])       # the same bench time axis, still running
             pv = _last_chamber_pv(db, run)
-            bench = SimulatedBench(speed=float(sim_info["speed"]), scenario=sim_info["scenario"], clock=clock,
-                                   data_rate_hz=int(sim_info["data_rate_hz"]),
-                                   initial_air_c=float(pv) if pv is not None else 23.0).start()
+            bench = _sim_bench(sim_info.get("units"), speed=float(sim_info["speed"]), scenario=sim_info["scenario"],
+                               clock=clock, data_rate_hz=int(sim_info["data_rate_hz"]),
+                               initial_air_c=float(pv) if pv is not None else 23.0).start()
         config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
     elif sim_endpoints or live.get("sim_endpoints"):
         config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"])

@@ -109,6 +109,8 @@ def serve_command(
                                                "default: one simulated bench"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench scenario (name or JSON file)"),
     bench_name: str = typer.Option("sim1", "--bench-name", help="name of the simulated bench"),
+    sim_gyros: Optional[int] = typer.Option(None, "--sim-gyros", min=1, max=64, help="simulated bench: this many "
+                                            "gyros in one chamber (runs then name them with gyro_ids)"),
     log_level: str = typer.Option("info", "--log-level"),
     log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
                                              "default $BENCH_LOG_FORMAT or text"),
@@ -136,13 +138,15 @@ def serve_command(
         else:
             from bench.clock import parse_speed
             from bench.settings import load_settings
-            from bench.sim.bench import SimulatedBench, lockstep_clock
+            from bench.sim.bench import lockstep_clock
+            from bench.sim.multibench import simulated_bench
 
             pace = parse_speed(speed)
             clock = lockstep_clock(pace, seed)
             # tests hold the bench time at known instants through this file (bench.clock.LockstepClock)
             clock.hold_file = load_settings().sim_hold_file or None
-            sim = SimulatedBench(clock=clock, scenario=scenario, bench_name=bench_name, seed=seed).start()
+            sim = simulated_bench(sim_gyros, clock=clock, scenario=scenario, bench_name=bench_name,
+                                  seed=seed).start()
             cfg = sim.config
             workers.append(Worker(db, cfg.name, cfg, None, sim.clock, bench_state=sim, run_jobs=False))
             typer.echo(f"simulated bench {cfg.name!r} in lockstep, "

@@ -57,8 +57,10 @@ class GyroSerialLink(BackgroundLoop):
     thread_name = "gyro-link"
 
     def __init__(self, config: GyroConfig, clock: Clock, *, temp_scale: float | None = None,
-                 queue_limit: int = 2_000_000, read_timeout_s: float = 0.01) -> None:
+                 queue_limit: int = 2_000_000, read_timeout_s: float = 0.01, lockstep_name: str = "gyro") -> None:
         super().__init__()
+        # lockstep: the name its simulator serves under (one per gyro line on a multi-gyro bench)
+        self.lockstep_name = lockstep_name
         self.config = config
         self.clock = clock
         self.stats = LinkStats()
@@ -90,12 +92,12 @@ class GyroSerialLink(BackgroundLoop):
     def _before_start(self) -> None:
         self._port = self._open()
         if self._lockstep:
-            self.clock.receive("gyro_link", self._receive_instant)
+            self.clock.receive(f"{self.lockstep_name}_link", self._receive_instant)
             self.clock.serve_now()
 
     def stop(self) -> None:
         if self._lockstep:
-            self.clock.forget("gyro_link")
+            self.clock.forget(f"{self.lockstep_name}_link")
         super().stop()
 
     def _after_stop(self) -> None:
@@ -201,7 +203,7 @@ class GyroSerialLink(BackgroundLoop):
     def _receive_instant(self, t: float, reports: dict) -> None:
         """Lockstep receiver: read every byte the simulator wrote up to bench time ``t`` (they are
         already in the socket buffer: the simulator served the instant first), then decode them."""
-        sent = reports.get("gyro") or {}
+        sent = reports.get(self.lockstep_name) or {}
         port = self._port
         if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
             deadline = time.monotonic() + self.receive_wait_s
@@ -220,10 +222,29 @@ class GyroSerialLink(BackgroundLoop):
                     self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
                                        f"not received within {self.receive_wait_s:g} s")
                     break
+        elif port is not None and "peer" in sent and self._local_addr is not None:
+            self._check_dropped(port)
         with self._rx_cond:
             data, self._rx_pending = bytes(self._rx_pending), bytearray()
         if data:
             self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
+
+    def _check_dropped(self, port: serial.SerialBase) -> None:
+        """Lockstep: the simulator serves no connection of ours; if it closed ours (a dropped line),
+        close the port so the reader thread reconnects (and records the gap) as on a real line."""
+        try:
+            port.timeout = 0
+            data = port.read(65536)
+        except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+            self.last_error = f"{type(exc).__name__}: {exc}"
+            self._gap_from = self.clock.now()
+            self._close_port()
+            return
+        finally:
+            if self._port is port:
+                port.timeout = self.read_timeout_s
+        if data:
+            self._on_bytes(data)
 
     def _read_now(self) -> None:
         """Lockstep: take whatever bytes are waiting (command replies), without blocking."""

@@ -122,6 +122,15 @@ class ScpiPowerSupply:
     def measure_current(self) -> float:
         return self._float("MEAS:CURR?")
 
+    def reading(self) -> tuple[float, float, bool]:
+        """(volts, amps, output on) in one program message, ``MEAS:VOLT?;:MEAS:CURR?;:OUTP?``: one round
+        trip instead of three (the reply is the three results joined by ``;``)."""
+        reply = self.query("MEAS:VOLT?;:MEAS:CURR?;:OUTP?")
+        parts = [p.strip() for p in reply.split(";")]
+        if len(parts) != 3 or not all(_NUMBER.fullmatch(p) for p in parts[:2]) or parts[2].upper() not in ("0", "1", "ON", "OFF"):
+            raise ProtocolError(f"power supply at {self.config.url}: MEAS:VOLT?;:MEAS:CURR?;:OUTP? returned {reply!r}")
+        return float(parts[0]), float(parts[1]), parts[2].upper() in ("1", "ON")
+
     def apply_config(self) -> None:
         """Set the configured voltage and current limit (output state unchanged)."""
         self.set_current_limit(self.config.current_limit_a)
@@ -129,3 +138,33 @@ class ScpiPowerSupply:
 
     def close(self) -> None:
         self.line.close()
+
+
+
+class PsuChannel(ScpiPowerSupply):
+    """One output channel of a multi-channel SCPI supply as a ``PowerSupply`` of its own.
+
+    Every request selects the channel in the same program message (``INST:NSEL n;:OUTP ON``,
+    ``INST:NSEL n;:MEAS:VOLT?``: SCPI-1999 INSTrument subsystem, as on Keysight E36300, Rigol DP800,
+    R&S HMP; ``;:`` starts the next command at the root), so a selection is never separated from its
+    command, and one line costs one round trip.  Channels of one supply share its ``SerialLine`` and a
+    lock (the error queue is the instrument's, read right after each setting under the same lock)."""
+
+    def __init__(self, supply: ScpiPowerSupply, channel: int, lock) -> None:
+        if isinstance(channel, bool) or not isinstance(channel, int) or channel < 1:
+            raise ValueError(f"power supply channel must be an integer >= 1, got {channel!r}")
+        self.config = supply.config
+        self.line = supply.line
+        self.channel = channel
+        self.lock = lock
+
+    def write(self, command: str) -> None:
+        with self.lock:
+            super().write(f"INST:NSEL {self.channel};:{command}")
+
+    def query(self, command: str) -> str:
+        with self.lock:
+            return super().query(f"INST:NSEL {self.channel};:{command}")
+
+    def close(self) -> None:
+        """The shared line is closed by the supply that owns it (``close_devices``)."""

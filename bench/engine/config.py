@@ -14,7 +14,8 @@ class EngineConfig(BaseModel):
     tick_s: float = Field(1.0, gt=0)             # loop period while recording / ramping / moving
     max_tick_s: float = Field(10.0, gt=0)        # loop period during plain soaks (data is drained every tick)
     probe_period_s: float = Field(2.0, gt=0)     # DS18B20 read period
-    telemetry_period_s: float = Field(5.0, gt=0)  # chamber / table / PSU status period (also alarm checks)
+    telemetry_period_s: float = Field(5.0, gt=0)  # chamber status period (also alarm checks)
+    table_psu_period_s: float = Field(10.0, gt=0)  # turntable position / rate and PSU V, I, output period
     frame_batch: int = Field(2000, ge=1)         # frames handed to the store per batch at most
     frame_flush_s: float = Field(2.0, gt=0)      # ... or at least this often
     checkpoint_period_s: float = Field(120.0, gt=0)

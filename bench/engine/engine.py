@@ -45,6 +45,7 @@ from bench.engine.context import HardwareState, StepContext
 from bench.engine.control import COMMANDS, Control, NoControl
 from bench.engine.devices import Devices
 from bench.engine.executors import EXECUTORS, StepExecutor, StepFailed
+from bench.engine.fixture import FixtureAcquisition
 from bench.engine.monitor import Acquisition
 from bench.engine.orientation import solve_angles
 from bench.engine.outcomes import RunOutcome, StepOutcome
@@ -92,7 +93,8 @@ class Engine:
         self.plan: Plan | None = None
         self.estimates: list[float] = []
         self.hw = HardwareState()
-        self.acq: Acquisition
+        self.acq: Acquisition | FixtureAcquisition
+        self.fixture: FixtureAcquisition | None = None       # several gyros in one chamber
         self.current: StepExecutor | None = None
         self.current_index = 0
         self.powered_since: float | None = None
@@ -140,9 +142,15 @@ class Engine:
         opened = cp.get("open_suspension")
         if opened:
             self.store.close_suspension(run_id, opened["id"], last_t, opened["reason"] + " (run interrupted)")
-        last_frame = self.store.last_frame_time(run_id)
-        gap_from = max(last_t, last_frame) if last_frame is not None else last_t
-        self.store.add_gap(run_id, gap_from, now, "engine interrupted")
+        gap_from = _gap_start(last_t, self.store.last_frame_time(run_id))
+        if self.fixture is None:
+            self.store.add_gap(run_id, gap_from, now, "engine interrupted")
+        else:
+            # the parent has no frames to close its gap with: a row of its own; each unit's closes at its next frame
+            self.store.add_gap(run_id, gap_from, now, "engine interrupted", frames_missing=0)
+            self.fixture.restore(cp.get("units"))
+            self.fixture.add_gap(lambda unit_run: _gap_start(last_t, self.store.last_frame_time(unit_run)), now,
+                                 "engine interrupted")
         index = int(cp["step_index"])
         self._status("running", now)
         self.log("warning", "run_resumed", f"run {run_id} resumed at step {index} after an interruption of "
@@ -196,6 +204,8 @@ class Engine:
     def _status(self, status: str, now: float, reason: str | None = None) -> None:
         self.status = status
         self.store.set_run_status(self.run_id, status, now, reason)
+        if self.fixture is not None:
+            self.fixture.set_status(status, now, reason)
 
     # ---- setup --------------------------------------------------------------------------------
     def _setup(self, run_id: str, plan: Plan, now: float) -> None:
@@ -203,14 +213,29 @@ class Engine:
         self.plan = plan
         self.estimates = step_estimates(plan, self.config, self.cfg)
         self.next_checkpoint = now + self.cfg.checkpoint_period_s
-        self.acq = Acquisition(self.devices, self.store, run_id, self.config, self.cfg, self.log, now)
+        if self.devices.multi:
+            units = self.store.unit_runs(run_id)
+            if not units:
+                raise BenchError(f"run {run_id}: this bench carries several gyros (slots "
+                                 f"{', '.join(u.slot for u in self.devices.units)}) but the run names none")
+            try:
+                self.devices = self.devices.only(units)
+            except ValueError as exc:
+                raise BenchError(f"run {run_id}: {exc}") from None
+            self.acq = self.fixture = FixtureAcquisition(self.devices, self.store, run_id, units, self.config,
+                                                         self.cfg, self.log, now)
+        else:
+            self.acq = Acquisition(self.devices, self.store, run_id, self.config, self.cfg, self.log, now)
 
     def _start_hardware(self, resumed: bool, index: int = 0) -> None:
         dev = self.devices
         dev.gyro.start()
         dev.chamber.set_power(True)
-        dev.psu.set_voltage(self.config.psu.voltage_v)
-        dev.psu.set_current_limit(self.config.psu.current_limit_a)
+        if self.fixture is not None:
+            dev.psu.apply_unit_settings()         # PowerBank: each unit its own voltage and limit
+        else:
+            dev.psu.set_voltage(self.config.psu.voltage_v)
+            dev.psu.set_current_limit(self.config.psu.current_limit_a)
         for axis in (self.config.turntable.geometry.outer_axis_number, self.config.turntable.geometry.inner_axis_number):
             dev.turntable.interlock_close(axis)
         self.log("info", "hardware_ready", f"gyro link started, chamber power on, PSU "
@@ -307,12 +332,17 @@ class Engine:
 
     def _step_context(self) -> StepContext:
         """What a step may see and do (``bench.engine.context``), bound to this run."""
-        run_id, store, fit_hook = self.run_id, self.store, self.fit_hook
+        run_id, store, fit_hook, fixture = self.run_id, self.store, self.fit_hook, self.fixture
+
+        def record_segment(index: int, kind: str, t_from: float, t_to: float, labels: dict[str, Any]) -> None:
+            store.add_segment(run_id, index, kind, t_from, t_to, labels)
+            if fixture is not None:
+                fixture.add_segment(index, kind, t_from, t_to, labels)
+
         return StepContext(
             devices=self.devices, config=self.config, engine_config=self.cfg, hw=self.hw,
             readings=self.acq, log=self.log,
-            record_segment=lambda index, kind, t_from, t_to, labels: store.add_segment(
-                run_id, index, kind, t_from, t_to, labels),
+            record_segment=record_segment,
             save_fit=lambda index, result: store.save_fit(run_id, index, result),
             gyro_powered=self._gyro_powered,
             fit=None if fit_hook is None else (lambda index, step: fit_hook(run_id, index, step, store)))
@@ -415,6 +445,7 @@ class Engine:
             "finished": finished,
             "wall_time": time.time(),
             "bench_state": self.bench_state.snapshot() if self.bench_state is not None and not finished else None,
+            "units": self.fixture.checkpoint() if self.fixture is not None else None,
         })
         self.next_checkpoint = now + self.cfg.checkpoint_period_s
 
@@ -441,5 +472,12 @@ class Engine:
             self.log("error", "link_stop_failed", f"gyro link stop failed: {exc}")
         now = self.clock.now()
         self._checkpoint(now, self.current_index, None, finished=status)
+        if self.fixture is not None:
+            reason = self.fixture.finish(status, now, reason)
         self._status(status, now, reason if safe_ok else f"{reason or status}; safe state incomplete")
         self.log("info", "run_ended", f"run ended: {status}", safe_state_ok=safe_ok)
+
+
+def _gap_start(last_checkpoint_t: float, last_frame_t: float | None) -> float:
+    """Where the outage of an interrupted run starts: its last checkpoint, or its last stored frame if later."""
+    return max(last_checkpoint_t, last_frame_t) if last_frame_t is not None else last_checkpoint_t

@@ -5,8 +5,8 @@ clock, and the fit hook that fits a procedure's declared models on the stored ru
 on ``Engine`` start); ``close_devices`` closes every driver and never raises.
 
 ``engine_config_for(clock)``: engine timing in bench seconds.  Real hardware (``RealClock``) and the
-stepped test clock keep the defaults: probes every 2 s, chamber / turntable / PSU telemetry every 5 s,
-a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
+stepped test clock keep the defaults: probes every 2 s, chamber status every 5 s, turntable and PSU
+every 10 s, a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
 time only moves when the engine sleeps and every sample is served before it does, so the same rates
 hold at any speed; its loop ticks every 2 s (the probe period) in soaks too.  An ``AcceleratedClock``
 (a simulated bench in another process that shares no lockstep clock) keeps the defaults as well: its
@@ -24,37 +24,56 @@ fails (the run itself is kept).
 """
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 from bench.clock import Clock
 from bench.config import BenchConfig
 from bench.engine.config import EngineConfig
-from bench.engine.devices import Devices
+from bench.engine.devices import Devices, UnitDevices
 from bench.engine.steps import Fit
 from bench.errors import BenchError
 
 
 
 def build_devices(config: BenchConfig, clock: Clock) -> Devices:
-    """The real drivers for ``config`` (the same ones talk to the simulators)."""
+    """The real drivers for ``config`` (the same ones talk to the simulators).  A multi-gyro bench
+    (``config.gyros``) gives a fixture: per slot its gyro link (lockstep name ``gyro:<slot>``), its
+    probes and its power, a channel of the one ``config.psu`` supply or a supply of its own."""
     from bench.devices.chamber import WatlowF4Chamber
     from bench.devices.ds18b20 import W1ProbeArray
     from bench.devices.gyro import GyroSerialLink
-    from bench.devices.psu import ScpiPowerSupply
+    from bench.devices.psu import PsuChannel, ScpiPowerSupply
     from bench.devices.turntable import AcutrolTurntable
 
-    return Devices(chamber=WatlowF4Chamber(config.chamber, clock),
-                   turntable=AcutrolTurntable(config.turntable, clock),
-                   gyro=GyroSerialLink(config.gyro, clock),
-                   probes=W1ProbeArray(config.probes),
-                   psu=ScpiPowerSupply(config.psu))
+    chamber = WatlowF4Chamber(config.chamber, clock)
+    turntable = AcutrolTurntable(config.turntable, clock)
+    if not config.multi:
+        return Devices(chamber=chamber, turntable=turntable, gyro=GyroSerialLink(config.gyro, clock),
+                       probes=W1ProbeArray(config.probes), psu=ScpiPowerSupply(config.psu))
+    shared = ScpiPowerSupply(config.psu) if any(s.power.channel is not None for s in config.gyros) else None
+    lock = threading.Lock()
+    units = []
+    for slot in config.gyros:
+        own = slot.power.psu
+        psu = ScpiPowerSupply(own) if own is not None else PsuChannel(shared, slot.power.channel, lock)
+        supply_cfg = own or config.psu
+        units.append(UnitDevices(
+            slot=slot.slot, gyro=GyroSerialLink(slot.gyro, clock, lockstep_name=f"gyro:{slot.slot}"),
+            probes=W1ProbeArray(slot.probes), psu=psu,
+            voltage_v=slot.power.voltage_v if slot.power.voltage_v is not None else supply_cfg.voltage_v,
+            current_limit_a=(slot.power.current_limit_a if slot.power.current_limit_a is not None
+                             else supply_cfg.current_limit_a)))
+    return Devices.fixture(chamber, turntable, units, shared=[shared] if shared is not None else [])
 
 
 def close_devices(devices: Devices) -> list[str]:
     """Close every driver; returns the problems met (closing must reach every device)."""
     problems: list[str] = []
-    for name, action in (("gyro link", devices.gyro.stop), ("chamber", devices.chamber.close),
-                         ("turntable", devices.turntable.close), ("power supply", devices.psu.close)):
+    closers = [("gyro link", devices.gyro.stop), ("chamber", devices.chamber.close),
+               ("turntable", devices.turntable.close), ("power supply", devices.psu.close)]
+    closers += [("shared power supply", supply.close) for supply in devices.shared]
+    for name, action in closers:
         try:
             action()
         except Exception as exc:  # noqa: BLE001 - report and go on
@@ -76,12 +95,31 @@ def make_fit_hook(db, store, *, latitude_deg: float | None, accept: bool = True)
     """Engine ``FitHook`` storing the fitted models in the ``fits`` table (see the module docstring)."""
 
     def hook(run_id: str, index: int, step: Fit, _store: Any) -> dict[str, Any]:
+        from bench.storage import queries
+
+        rid = int(run_id)
+        with db.session() as s:
+            units = [(u.slot, int(u.id)) for u in queries.unit_runs(s, rid)]
+        if not units:
+            return fit_run(rid, step)
+        # a multi-gyro run: the procedure's fits on each gyro's own run, stored under its gyro id
+        results: dict[str, Any] = {}
+        for slot, unit_rid in units:
+            try:
+                results[slot] = {"run_id": unit_rid, **fit_run(unit_rid, step)}
+            except BenchError as exc:
+                results[slot] = {"run_id": unit_rid, "status": "failed", "error": str(exc)}
+        if not any(r.get("status") == "done" for r in results.values()):
+            raise BenchError(f"run {rid}: no gyro could be fitted: "
+                             + "; ".join(f"{slot}: {r.get('error') or r.get('reason')}" for slot, r in results.items()))
+        return {"status": "done", "units": results}
+
+    def fit_run(rid: int, step: Fit) -> dict[str, Any]:
         from bench.fit.catalog import fit_model
         from bench.storage import queries
         from bench.storage.export import run_dataset
 
-        store.flush(run_id)
-        rid = int(run_id)
+        store.flush(rid)
         with db.session() as s:
             gyro_id = queries.get_run(s, rid).gyro_id
         if gyro_id is None:

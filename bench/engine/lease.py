@@ -10,7 +10,6 @@ beyond that (the process was frozen, SIGSTOP, a long GC pause) it asks the datab
 """
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -101,9 +100,10 @@ class FencedDevice:
 def fence_devices(devices: Devices, lease: RunLease) -> Devices:
     """Every driver wrapped in ``FencedDevice``; a driver that can (``guard_requests``) also checks the lease
     before each request it puts on the wire, so a call that passed the check before the process froze
-    sends nothing more once it wakes without the lease (a status read is several requests)."""
-    for f in dataclasses.fields(devices):
-        guard = getattr(getattr(devices, f.name), "guard_requests", None)
+    sends nothing more once it wakes without the lease (a status read is several requests).  On a
+    multi-gyro bench that is every unit's line, probes and supply too."""
+    for driver in devices.drivers():
+        guard = getattr(driver, "guard_requests", None)
         if callable(guard):
             guard(lease.check)
-    return Devices(**{f.name: FencedDevice(getattr(devices, f.name), lease) for f in dataclasses.fields(devices)})
+    return devices.wrapped(lambda device: FencedDevice(device, lease))

@@ -34,7 +34,18 @@ class MemoryRun:
 class MemoryRunStore:
     def __init__(self) -> None:
         self.runs: dict[str, MemoryRun] = {}
+        self.units: dict[str, dict[str, str]] = {}      # multi-gyro run -> slot -> its unit's run id
         self._lock = threading.Lock()
+
+    def add_units(self, run_id: str, units: dict[str, str]) -> None:
+        """Declare ``run_id`` a multi-gyro run whose gyro in each slot records into its own run."""
+        with self._lock:
+            self.units[run_id] = dict(units)
+            for unit_run in units.values():
+                self.runs.setdefault(unit_run, MemoryRun({}, {}, 0.0))
+
+    def unit_runs(self, run_id: str) -> dict[str, str]:
+        return dict(self.units.get(run_id, {}))
 
     def _run(self, run_id: str) -> MemoryRun:
         try:
@@ -99,8 +110,12 @@ class MemoryRunStore:
         self._run(run_id).segments.append({"step_index": step_index, "kind": kind, "t_from": t_from,
                                            "t_to": t_to, "labels": copy.deepcopy(labels)})
 
-    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
-        self._run(run_id).gaps.append({"t_from": t_from, "t_to": t_to, "reason": reason})
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str,
+                frames_missing: int | None = None) -> None:
+        gap = {"t_from": t_from, "t_to": t_to, "reason": reason}
+        if frames_missing is not None:
+            gap["frames_missing"] = frames_missing
+        self._run(run_id).gaps.append(gap)
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         run = self._run(run_id)

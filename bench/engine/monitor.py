@@ -1,8 +1,8 @@
 """Data acquisition and condition watching, run once per engine tick.
 
 Every tick: drain the gyro link (non-blocking) into a buffer handed to the store in batches, and
-record new link gaps from ``LinkStats.link_gaps``.  When due: read the DS18B20 probes and the
-chamber / turntable / PSU telemetry.  After each read, the suspenders watching that source
+record new link gaps from ``LinkStats.link_gaps``.  When due: read the DS18B20 probes, the chamber
+status (every ``telemetry_period_s``) and the turntable / PSU telemetry (every ``table_psu_period_s``).  After each read, the suspenders watching that source
 (``bench.engine.suspenders``: the bench's own and those of ``BenchConfig.suspend``) update the
 *conditions* that suspend a run, each with a human-readable reason.  Nothing here commands hardware.
 """
@@ -41,6 +41,7 @@ class Acquisition:
         self.last_flush = now
         self.next_probe = now
         self.next_telemetry = now
+        self.next_table_psu = now
         self.link_gaps_seen = len(devices.gyro.stats.link_gaps)
         self.last_frames_t: float | None = None
         self.status: ChamberStatus | None = None
@@ -84,15 +85,20 @@ class Acquisition:
         if now >= self.next_probe:
             self.next_probe = _next_on_grid(self.next_probe, now, self.cfg.probe_period_s)
             self.read_probes(now)
-        if now >= self.next_telemetry:
+        chamber = now >= self.next_telemetry
+        table_psu = now >= self.next_table_psu
+        if chamber:
             self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
-            self.read_telemetry(now)
+        if table_psu:
+            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        if chamber or table_psu:
+            self.read_telemetry(now, chamber=chamber, table_psu=table_psu)
         if len(self.buffer) >= self.cfg.frame_batch or now - self.last_flush >= self.cfg.frame_flush_s:
             self.flush(now)
 
     def next_due(self) -> float:
         """Bench time of the next scheduled probe read or telemetry (the engine wakes for it)."""
-        return min(self.next_probe, self.next_telemetry)
+        return min(self.next_probe, self.next_telemetry, self.next_table_psu)
 
     def drain(self, now: float) -> None:
         link = self.devices.gyro
@@ -189,8 +195,15 @@ class Acquisition:
         self._watch("chamber", now)
         return status
 
-    def read_telemetry(self, now: float) -> None:
-        status = self.read_chamber(now)
+    def read_telemetry(self, now: float, *, chamber: bool = True, table_psu: bool = True) -> None:
+        """Chamber status, and the turntable's two axes and the PSU's V / I / output (each when asked:
+        the chamber every ``telemetry_period_s``, table and PSU every ``table_psu_period_s``)."""
+        status = self.read_chamber(now) if chamber else None
+        table = self.read_table(now) if table_psu else None
+        psu_reading = self.read_psu(now) if table_psu else None
+        self.record_telemetry(now, status, table, psu_reading)
+
+    def read_table(self, now: float) -> dict[int, AxisState] | None:
         table: dict[int, AxisState] | None = {}
         try:
             for axis in (self.outer_axis, self.inner_axis):
@@ -201,10 +214,18 @@ class Acquisition:
         else:
             self._link("table", None)
         self._watch("table", now)
+        return table
+
+    def read_psu(self, now: float) -> PsuReading | None:
         psu_reading: PsuReading | None
         try:
             psu = self.devices.psu
-            psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
+            combined = getattr(psu, "reading", None)      # one round trip where the driver offers it
+            if combined is not None:
+                volts, amps, on = combined()
+                psu_reading = PsuReading(volts=volts, amps=amps, on=on)
+            else:
+                psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
         except DeviceError as exc:
             self._link("psu", exc)
             psu_reading = None
@@ -212,6 +233,10 @@ class Acquisition:
             self._link("psu", None)
             self.psu = psu_reading
         self._watch("psu", now)
+        return psu_reading
+
+    def record_telemetry(self, now: float, status: ChamberStatus | None, table: dict[int, AxisState] | None,
+                         psu_reading: PsuReading | None) -> None:
         if status is not None or table or psu_reading is not None:
             self.store.add_telemetry(self.run_id, now, status, table, psu_reading)
 

@@ -69,13 +69,14 @@ def process_name() -> str:
 
 def new_run(db: Database, *, procedure: str, parameters: dict[str, Any], config_snapshot: dict[str, Any],
             gyro_id: str | None, bench_name: str | None, operator: str = "",
-            launch: dict[str, Any] | None = None) -> int:
+            launch: dict[str, Any] | None = None, units: list[tuple[str, str]] | None = None) -> int:
     """A ``queued`` run row (gyro and bench rows made if missing); ``launch`` (how it was started:
-    simulated bench settings, engine config) goes to ``runs.live``.  Returns ``runs.id``."""
+    simulated bench settings, engine config) goes to ``runs.live``.  ``units`` (slot, gyro id): a
+    multi-gyro run (``gyro_id`` None), one child run per gyro.  Returns ``runs.id``."""
     with db.session() as s:
         run = queries.create_run(s, procedure=procedure, parameters=jsonable(parameters),
                                  config_snapshot=jsonable(config_snapshot), operator=operator, gyro_id=gyro_id,
-                                 bench_name=bench_name)
+                                 bench_name=bench_name, units=units)
         if launch:
             run.live = jsonable(dict(launch))
         s.flush()
@@ -99,6 +100,7 @@ class SqlRunStore:
         self.nominal_rate_hz = nominal_rate_hz
         self.writer_options = dict(writer_options or {})
         self._writers: dict[int, FrameWriter] = {}
+        self._formats: dict[int, dict[str, Any]] = {}     # per-run frame kind / rate (multi-gyro units)
         self._table: dict[int, dict[int, AxisState]] = {}
         self._lock = threading.Lock()
         # the executing worker's lease (bench.engine.lease.RunLease), set by the worker: every owner write
@@ -118,12 +120,21 @@ class SqlRunStore:
         with self._lock:
             w = self._writers.get(rid)
             if w is None:
-                opts: dict[str, Any] = {"frame_kind": self.frame_kind, "nominal_rate_hz": self.nominal_rate_hz}
-                if self.frame_kind != "kvh_a":
+                opts: dict[str, Any] = {"frame_kind": self.frame_kind, "nominal_rate_hz": self.nominal_rate_hz,
+                                        **self._formats.get(rid, {})}
+                if opts["frame_kind"] != "kvh_a":
                     opts["valid_status"] = None
                 opts.update(self.writer_options)
                 w = self._writers[rid] = FrameWriter(self.db, rid, **opts)
             return w
+
+    def set_format(self, run_id: str | int, frame_kind: str, nominal_rate_hz: float | None) -> None:
+        """The frame kind and rate of ``run_id``'s gyro (a unit of a multi-gyro run), before its first frame."""
+        self._formats[run_key(run_id)] = {"frame_kind": frame_kind, "nominal_rate_hz": nominal_rate_hz}
+
+    def unit_runs(self, run_id: str | int) -> dict[str, str]:
+        with self.db.session() as s:
+            return {str(u.slot): str(u.id) for u in queries.unit_runs(s, run_key(run_id))}
 
     def flush(self, run_id: str | int, timeout: float = 60.0) -> None:
         w = self._writers.get(run_key(run_id))
@@ -131,10 +142,16 @@ class SqlRunStore:
             w.flush(timeout)
 
     def close(self, run_id: str | int, timeout: float = 60.0) -> None:
+        """Flush and stop the run's writer (and its gyro units' writers, for a multi-gyro run)."""
+        rid = run_key(run_id)
         with self._lock:
-            w = self._writers.pop(run_key(run_id), None)
-        if w is not None:
-            w.close(timeout)
+            open_units = [r for r in self._writers if r != rid]
+        rids = [int(u) for u in self.unit_runs(rid).values() if int(u) in open_units] if open_units else []
+        for key in (*rids, rid):
+            with self._lock:
+                w = self._writers.pop(key, None)
+            if w is not None:
+                w.close(timeout)
 
     def abandon(self, run_id: str | int) -> int:
         with self._lock:
@@ -191,6 +208,7 @@ class SqlRunStore:
             run = self._owned(s, rid)
             run.worker = owner
             run.heartbeat_at = utcnow()
+            queries.own_units(s, rid, owner, run.heartbeat_at)
             if progress is not None:
                 run.live = jsonable({**(run.live or {}), "progress": progress})
 
@@ -288,8 +306,11 @@ class SqlRunStore:
             repetition=int(rep) if isinstance(rep, (int, float)) and not isinstance(rep, bool) else 0,
             labels=jsonable(stored_labels))
 
-    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None:
-        self.writer(run_id).record_gap(t_from, max(t_from, t_to), reason[:64])
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str,
+                frames_missing: int | None = None) -> None:
+        """``frames_missing`` None: the next frame closes the gap and counts them; given (an outage that
+        lasted to the end of the run, no next frame): a gap row of its own."""
+        self.writer(run_id).record_gap(t_from, max(t_from, t_to), reason[:64], frames_missing)
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         with self.db.session() as s:
@@ -368,6 +389,16 @@ def run_report(db: Database, run_id: int) -> dict[str, Any]:
             "worker": run.worker,
             "sim": live.get("sim"),
             "steps_done": sum(1 for st in steps if st.status == StepOutcome.DONE),
+            "status_reason": live.get("status_reason"),
+            "parent_id": run.parent_id,
+            "slot": run.slot,
+            # a multi-gyro run: each gyro's own run (its data, gaps and fits are there)
+            "units": [{"slot": u.slot, "run_id": u.id, "gyro_id": u.gyro_id, "status": u.status,
+                       "outcome": (u.live or {}).get("outcome"), "error": u.error,
+                       "frames": queries.frame_count(s, u.id),
+                       "gaps": [{"t_from": g.t_from, "t_to": g.t_to, "reason": g.reason,
+                                 "frames_missing": g.frames_missing} for g in queries.list_gaps(s, u.id)]}
+                      for u in queries.unit_runs(s, run.id)],
         }
     from bench.storage.sampling import sampling_summary
 
@@ -396,6 +427,7 @@ def claim_for_resume(db: Database, run_id: int, owner: str, *, stale_after_s: fl
                 raise StorageError(f"run {run_id} is still being executed by {run.worker} (heartbeat "
                                    f"{run.heartbeat_at}); stop that process first or use --force")
         s.execute(update(Run).where(Run.id == run.id).values(worker=owner, heartbeat_at=utcnow()))
+        queries.own_units(s, run.id, owner)
 
 
 def _executor_alive(worker: str, heartbeat_at, stale_after_s: float, dt) -> bool:

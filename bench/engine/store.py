@@ -19,6 +19,8 @@ Contract notes
 - Run status values: running, paused, suspended, stopping, completed, stopped, aborted, failed
   ("stopped" = ended early on an operator stop, after finishing the current recording).
 - Step status values: running, done, skipped, stopped, aborted, failed.
+- ``unit_runs``: for a multi-gyro run, slot -> the run id of that gyro's own run (the child run that
+  takes its frames, probes, supply telemetry, segments and gaps); empty for a one-gyro run.
 """
 from __future__ import annotations
 
@@ -64,10 +66,13 @@ class RunStore(Protocol):
     def add_segment(self, run_id: str, step_index: int, kind: str, t_from: float, t_to: float,
                     labels: dict[str, Any]) -> None: ...
 
-    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str) -> None: ...
+    def add_gap(self, run_id: str, t_from: float, t_to: float, reason: str,
+                frames_missing: int | None = None) -> None: ...
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> Any: ...
 
     def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None: ...
 
     def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None: ...
+
+    def unit_runs(self, run_id: str) -> dict[str, str]: ...

@@ -35,11 +35,11 @@ import numpy as np
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
-                                        evidence_blocks, gates, search)
+                                        cv_gain_text, evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability
-from bench.fit.noisefloor import WHITE_MUS, fit_noise_model
+from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
-from bench.signal import block_means
+from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
 
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
@@ -49,7 +49,7 @@ STOP_RATIO = 1.15
 MIN_DIAGNOSIS_BLOCKS = 12
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
-TEST_P = 0.01
+TEST_P = LIMIT_P              # one significance level: structure tests and the noise-floor limit
 
 
 def lstsq(X: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -89,10 +89,6 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     """Tests the 100-s means of a residual for leftover structure: whiteness (Ljung-Box), the
     strongest periodic component with at least two periods in the record (Fisher's g test on the
     periodogram) and a linear trend (HAC)."""
-    import statsmodels.api as sm
-    from statsmodels.stats.diagnostic import acorr_ljungbox
-
-    from bench.fit.linear import newey_west_lags
     from bench.fit.metrics import window_means
 
     means = window_means(time_s, residual, 100.0)
@@ -106,8 +102,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     s = float(np.std(means, ddof=1))
     out["std100_dph"] = s
     out["ratio_to_noise_floor"] = s / noise_floor if noise_floor > 0 else float("inf")
-    lb = acorr_ljungbox(centred, lags=[min(10, n // 5)], return_df=True)
-    out["ljung_box_p"] = float(lb["lb_pvalue"].iloc[0])
+    out["ljung_box_p"] = ljung_box(centred, min(10, n // 5))[1]
     spec = np.abs(np.fft.rfft(centred)) ** 2
     spec = spec[2:]                         # k >= 2: at least two periods in the record
     if len(spec) > 2:
@@ -129,8 +124,7 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
         out["peak_period_s"] = float(1.0 / best.x)
         out["peak_amplitude_dph"] = sine_fit(best.x)[1]
     tt_h = np.arange(n) * 100.0 / 3600.0
-    X = sm.add_constant(tt_h)
-    res = sm.OLS(means, X).fit(cov_type="HAC", cov_kwds={"maxlags": max(1, newey_west_lags(n))})
+    res = ols_hac(np.column_stack([np.ones(n), tt_h]), means)
     out["trend_dph_per_h"] = float(res.params[1])
     out["trend_p"] = float(res.pvalues[1])
     out["failed_tests"] = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"),
@@ -139,9 +133,10 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
 
 
 def at_floor(std: float, floor: dict[str, Any]) -> bool:
-    """Within 1.2x of the noise floor, or inside the interval noise alone gives on this record."""
+    """Within 1.2x of the noise floor, or below the std100 that noise alone exceeds on this record
+    with probability ``noisefloor.LIMIT_P`` only (the level of the structure tests)."""
     f = floor.get("noise_floor_dph", float("nan"))
-    hi = floor.get("interval_dph", [float("nan")] * 2)[1]
+    hi = floor.get("limit_dph", float("nan"))
     if not np.isfinite(std) or not np.isfinite(f):
         return False
     return bool(std <= AT_FLOOR_RATIO * f or (np.isfinite(hi) and std <= hi))
@@ -169,17 +164,19 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # TRAIN: choose the effects (search on block means)
     inputs_tr, inputs_va = fx.build_inputs(train, ctx), fx.build_inputs(validate, ctx)
     fine = inputs_tr.averaged(FINE_S)
+    # every regressor is averaged over the samples where the target was measured (no gap dilutes it)
+    measured = np.isfinite(y_train)
     cols = {"y": y_train}
-    cols.update({f"x{j}": design.train[:, j] for j in range(design.train.shape[1])})
+    cols.update({f"x{j}": np.where(measured, design.train[:, j], np.nan) for j in range(design.train.shape[1])})
     sig = design.train_signals if design.train_signals is not None else np.zeros((len(train), 0))
-    cols.update({f"s{j}": sig[:, j] for j in range(sig.shape[1])})
+    cols.update({f"s{j}": np.where(measured, sig[:, j], np.nan) for j in range(sig.shape[1])})
     on_fine = block_means(t_tr, cols, FINE_S).columns if sample_period(t_tr) < 0.9 * FINE_S else cols
     ev = evidence_blocks(fine.time, on_fine)
     k, ns = design.train.shape[1], sig.shape[1]
     problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[f"x{j}"] for j in range(k)]), fine=fine,
                             declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
                             else np.zeros((len(ev["y"]), 0)),
-                            families=fx.families(ctx, inputs_tr))
+                            families=fx.families(ctx, inputs_tr), fine_valid=np.isfinite(on_fine["y"]))
     # the search stops once the training residual is within STOP_RATIO of the white part of the noise
     # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
     # slow structure still in that residual reads as flicker)
@@ -347,10 +344,8 @@ def _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range) -> dict[str, float]:
     return out
 
 
-def _cv_text(cv_gain) -> str:
-    if isinstance(cv_gain, (int, float)) and np.isfinite(cv_gain):
-        return f"cross-validated error -{100 * cv_gain:.0f} %"
-    return "cross-validation not applicable (the effect lies within one training segment)"
+def _cv_text(evidence: dict[str, Any]) -> str:
+    return "cross-validated error " + cv_gain_text(evidence)
 
 
 def _findings(r: dict[str, Any]) -> str:
@@ -379,7 +374,7 @@ def _findings(r: dict[str, Any]) -> str:
         ev = e["evidence"]
         lines.append(f"{i}. Added {e['kind']}" + (f" ({params})" if params else "") +
                      f" on training evidence: delta-BIC {ev['delta_bic']:.1f}, HAC Wald p {ev['hac_wald_p']:.2g}, "
-                     + _cv_text(ev.get("cv_gain"))
+                     + _cv_text(ev)
                      + "; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
         runner = ev.get("runner_up")

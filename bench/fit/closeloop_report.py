@@ -9,6 +9,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
+from bench.fit.closeloop_search import cv_gain_text
 from bench.fit.report import _CSS, html_table, plot_adev, plot_before_after, plot_residuals
 
 
@@ -56,9 +57,9 @@ def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: D
                                    caption="which decision used which run"))
         if r["effects_added"]:
             body.append(html_table(
-                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "CV gain", "validation std100 (deg/h)"),
+                ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "cross-validated error", "validation std100 (deg/h)"),
                 [(i, e["kind"], ", ".join(f"{k}={v}" for k, v in e["params"].items()), ", ".join(e["terms"]),
-                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], e["evidence"].get("cv_gain", float("nan")),
+                  e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], cv_gain_text(e["evidence"]),
                   e["validation_std100_dph"])
                  for i, e in enumerate(r["effects_added"], 1)], caption="effects added (chosen on train, confirmed on validation)"))
         if r.get("effects_not_generalised"):

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from bench.fit import effects as fx
-from bench.signal import block_means, hac_wald_test, lag1_autocorrelation, newey_west_lags
+from bench.signal import BlockPlan, block_means, hac_wald_test, lag1_autocorrelation, newey_west_lags
 
 FINE_S = 10.0
 BLOCK_S = 100.0
@@ -48,6 +48,10 @@ PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 SWAP_DBIC = 2.0
+# why blocked cross-validation cannot judge an effect (then the validation run does)
+CV_CONFINED = "the effect lies within one training segment"
+CV_OUT_OF_RANGE = "the effect lies where no training segment can be scored inside the others' range"
+CV_NO_FOLD = "no training segment could be scored"
 
 
 @dataclass
@@ -76,9 +80,11 @@ class SearchProblem:
     declared_signals_b: np.ndarray  # (n_blocks, s) 100-s means of the declared model's inputs
     families: list[fx.Family]
     n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
+    fine_valid: np.ndarray | None = None   # fine-grid rows where the target was measured
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
+    _plan: BlockPlan | None = field(default=None, repr=False)     # the evidence blocks of the fine grid
 
     def __post_init__(self) -> None:
         self.rows = np.isfinite(self.yb) & np.all(np.isfinite(self.Xb), axis=1)
@@ -91,7 +97,13 @@ class SearchProblem:
         got = self._cache.get(key)
         if got is None:
             cols = eff.columns(self.fine)
-            got = np.column_stack(list(evidence_blocks(self.fine.time, cols).values()))
+            if self.fine_valid is not None:
+                # a block mean of a regressor over the same samples as the target's (a gap, e.g. the
+                # gyro powered off, must not dilute the regressor's block mean only)
+                cols = {k: np.where(self.fine_valid, v, np.nan) for k, v in cols.items()}
+            if self._plan is None:
+                self._plan = BlockPlan(self.fine.time, BLOCK_S)
+            got = np.column_stack([self._plan.means(v) for v in cols.values()])
             self._cache[key] = got
         return got
 
@@ -165,11 +177,11 @@ class SearchProblem:
             cnt += int(t.sum())
         return sse / cnt if cnt else float("nan")
 
-    def cv_gain(self, X0: np.ndarray, X1: np.ndarray) -> float:
+    def cv_gain(self, X0: np.ndarray, X1: np.ndarray) -> tuple[float, str]:
         """Relative drop of the cross-validated error from design X0 to X1 (X1 = X0 plus columns),
         over the folds where the added columns vary in the other segments (an effect confined to one
         segment, e.g. one warm-up, cannot be predicted from the others: those folds say nothing
-        about it).  NaN when no fold can judge it (then the validation run does)."""
+        about it).  NaN when no fold can judge it (then the validation run does), with the reason."""
         k0 = X0.shape[1]
         finite = np.all(np.isfinite(X1), axis=1)
         added = X1[:, k0:] - np.nanmean(X1[finite][:, k0:], axis=0)
@@ -180,10 +192,10 @@ class SearchProblem:
         for _fit, test in folds:
             tested |= test
         confined = [total > 0 and float(energy[test].sum()) > 0.5 * total for _fit, test in folds]
-        if total > 0 and (any(confined) or float(energy[tested].sum()) < 0.5 * total):
-            # most of the effect lies in one segment, or where no segment can be scored in range:
-            # the other segments cannot predict it
-            return float("nan")
+        if total > 0 and any(confined):
+            return float("nan"), CV_CONFINED
+        if total > 0 and float(energy[tested].sum()) < 0.5 * total:
+            return float("nan"), CV_OUT_OF_RANGE
         sse0 = sse1 = 0.0
         for fit, test in folds:
             f, t = fit & finite, test & finite
@@ -195,20 +207,22 @@ class SearchProblem:
                     sse0 += float(e @ e)
                 else:
                     sse1 += float(e @ e)
-        return 1.0 - sse1 / sse0 if sse0 > 0 else float("nan")
+        return (1.0 - sse1 / sse0, "") if sse0 > 0 else (float("nan"), CV_NO_FOLD)
 
     # ---------------------------------------------------------------- parameter search
     def best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         """The family's continuous parameter that minimises the training SSR with ``others`` fixed
-        (grid, then bounded golden section between the grid neighbours)."""
+        (grid, then bounded golden section between the grid neighbours; from an end of the grid, out
+        to the family's bounds: the grid is where the scan starts, not a limit on the answer)."""
         if not family.param:
             eff = family.at(None)
             return eff, self.ssr(others + (eff,))
         grid = list(family.grid)
         costs = [self.ssr(others + (family.at(v),)) for v in grid]
         i = int(np.argmin(costs))
-        lo = np.log(grid[max(i - 1, 0)])
-        hi = np.log(grid[min(i + 1, len(grid) - 1)])
+        low, high = family.bounds
+        lo = np.log(grid[i - 1] if i > 0 else min(low, grid[0]))
+        hi = np.log(grid[i + 1] if i + 1 < len(grid) else max(high, grid[-1]))
         res = minimize_scalar(lambda lv: self.ssr(others + (family.at(float(np.exp(lv))),)),
                               bounds=(lo, hi), method="bounded", options={"xatol": 0.03})
         if np.isfinite(res.fun) and res.fun < costs[i]:
@@ -219,9 +233,9 @@ class SearchProblem:
         """Joint re-fit of every added effect's nonlinear parameters, then swaps."""
         return self.swap(self.refit_params(effects))
 
-    def refit_params(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+    def refit_params(self, effects: tuple[fx.Effect, ...], keep_families: bool = False) -> tuple[fx.Effect, ...]:
         """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
-        kind with the others held."""
+        kind with the others held (``keep_families``: only the continuous parameters)."""
         current = tuple(effects)
         n_eff = self.score(current, with_cv=False).n_eff
         best = self.bic(current, n_eff)
@@ -229,7 +243,8 @@ class SearchProblem:
             changed = False
             for i, eff in enumerate(current):
                 others = current[:i] + current[i + 1:]
-                fams = [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
+                fams = [eff.family] if keep_families else \
+                    [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
                 if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
                     coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
                                                             for v in (f.grid or (None,))))
@@ -355,11 +370,23 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
     X = problem.design(new.effects)
     k0 = problem.design(base.effects).shape[1]
     p = hac_wald_p(X[problem.rows], problem.yb[problem.rows], list(range(k0, X.shape[1]))) if dbic > DBIC_MIN else 1.0
-    cv_gain = problem.cv_gain(problem.design(base.effects), X)
+    cv_gain, cv_note = problem.cv_gain(problem.design(base.effects), X)
     cv_ok = (not np.isfinite(cv_gain)) or cv_gain >= MIN_CV_GAIN
     passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok)
-    return {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
-            "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
+    out = {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
+           "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
+    if cv_note:
+        out["cv_not_applicable"] = cv_note
+    return out
+
+
+def cv_gain_text(evidence: dict[str, Any]) -> str:
+    """The cross-validation entry of an effect's evidence, in words: the drop of the cross-validated
+    error, or "n/a (why)" when blocked cross-validation could not judge the effect."""
+    gain = evidence.get("cv_gain")
+    if isinstance(gain, (int, float)) and np.isfinite(gain):
+        return f"-{100 * gain:.0f} %"
+    return f"n/a ({evidence.get('cv_not_applicable') or CV_NO_FOLD})"
 
 
 def search(problem: SearchProblem, stop_std100: float | None = None,
@@ -452,19 +479,23 @@ def _at_floor(single, chosen, stop_at) -> bool:
 def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
           steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
     """Backward pass on TRAIN: an effect that no longer passes the gates given all the others (an
-    early choice made redundant by later ones) is removed, the weakest first."""
+    early choice made redundant by later ones) is removed, the weakest first.  The others keep their
+    families and are judged with their continuous parameters re-fitted jointly without it (a time
+    constant or width bent to make room for a later effect would otherwise keep that effect looking
+    necessary)."""
     current = tuple(effects)
     while len(current) > 1:
         weakest = None
+        full = problem.score(current)
         for i, e in enumerate(current):
-            others = current[:i] + current[i + 1:]
-            ev = gates(problem, problem.score(others), problem.score(others + (e,)), (e,))
+            others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
+            ev = gates(problem, problem.score(others), full, (e,))
             if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
-                weakest = (i, ev["delta_bic"])
+                weakest = (i, ev["delta_bic"], others)
         if weakest is None:
             break
         steps.append({"pruned": current[weakest[0]].label, "delta_bic_given_the_others": weakest[1]})
-        current = current[:weakest[0]] + current[weakest[0] + 1:]
+        current = weakest[2]
     return current
 
 

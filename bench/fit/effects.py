@@ -37,7 +37,6 @@ from itertools import combinations
 from typing import Callable
 
 import numpy as np
-from scipy.signal import lfilter
 
 from bench.fit import prep
 from bench.fit.base import Dataset
@@ -45,6 +44,9 @@ from bench.signal import block_means, orientation_axes_per_sample, temperature_r
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+# a lag much shorter than a 100-s evidence block is a rate (lag_tau(T) - T = -tau dT/dt): the rate
+# family names that, so the time constant is not refined below the grid's first value
+LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
@@ -124,6 +126,19 @@ class Family:
     log_scale: bool = True
     chosen_probe: bool = True      # the probe/pair was searched (False: the declared model's own probe)
     options: int = 1               # how many probes / pairs it was chosen among
+    limits: tuple[float, float] | None = None   # where the parameter stays meaningful (None: one grid
+                                                # step beyond each end of the grid)
+
+    @property
+    def bounds(self) -> tuple[float, float]:
+        """The range the continuous parameter is refined in: the grid is only where the scan starts,
+        an optimum at its edge is followed one grid step beyond it (or up to ``limits``)."""
+        if self.limits is not None:
+            return self.limits
+        g = self.grid
+        if len(g) < 2:
+            return (g[0], g[0]) if g else (float("nan"), float("nan"))
+        return (g[0] * g[0] / g[1], g[-1] * g[-1] / g[-2])
 
     @property
     def label(self) -> str:
@@ -199,6 +214,8 @@ def first_order_lag(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
         x = _hold_missing(x)
     dt = sample_period(time_s)
     a = np.exp(-dt / tau_s)
+    from scipy.signal import lfilter   # scipy.signal takes seconds to import: only when used
+
     y, _ = lfilter([1 - a], [1, -a], x, zi=[a * x[0]])
     return y
 
@@ -299,7 +316,8 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
             v = first_order_lag(x.temps[p], x.time, tau)
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
-        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own))
+        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own,
+                          limits=LAG_LIMITS_S))
     if own in probes and order > 1:
         def lag_shape(x: Inputs, tau, p=own):
             # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
@@ -307,7 +325,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
         out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", LAG_TAUS_S,
-                          chosen_probe=False))
+                          chosen_probe=False, limits=LAG_LIMITS_S))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
@@ -329,14 +347,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         if widths:
             out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
                               lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
-                              "width_c", widths, chosen_probe=mine))
+                              "width_c", widths, chosen_probe=mine,
+                              limits=(widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     warm_taus = tuple(t for t in WARMUP_TAUS_S if t <= duration / 3.0)
     if len(warm_taus) >= 2:
-        out.append(Family("warmup", (), warm, "tau_s", warm_taus))
+        out.append(Family("warmup", (), warm, "tau_s", warm_taus, limits=(warm_taus[0] / 2.0, duration / 3.0)))
 
     if inputs.up is not None:
         out.append(Family("g_sensitivity", (), lambda x, _v: {f"g_{ax}": x.up[:, i] for i, ax in enumerate("xyz")}))
@@ -361,11 +380,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
 
 
 def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
-    """Gradual-hysteresis widths that saturate within the run's excursions: up to a quarter of the
-    probe's temperature span (a wider memory never saturates and is only a slow drift)."""
+    """Gradual-hysteresis widths that saturate within the run's excursions: up to half the probe's
+    temperature span (one full excursion brings the memory to 1 - exp(-2) = 86 % of saturation; a
+    wider memory never saturates and is only a slow drift)."""
+    return tuple(w for w in GRADUAL_WIDTHS_C if w <= _span(temp) / 2.0)
+
+
+def _span(temp: np.ndarray) -> float:
     t = temp[np.isfinite(temp)]
-    span = float(np.ptp(t)) if len(t) else 0.0
-    return tuple(w for w in GRADUAL_WIDTHS_C if w <= span / 4.0)
+    return float(np.ptp(t)) if len(t) else 0.0
 
 
 def _other_channel_temperatures(ctx: Context, probes: list[str]) -> list[str]:

@@ -21,10 +21,20 @@ so for white noise the floor is ADEV(100 s) itself, while flicker noise makes th
 over a long record larger than ADEV(100 s) (B1 grows like ln M).  The floor for a record of M blocks
 of 100 s is sqrt(sum_k h_k 100^mu_k B1(M, mu_k)).
 
-Uncertainty: the std of M block means has chi-square sampling scatter with about
-edf = (M - 1) / B1_mix degrees of freedom (B1_mix: the floor's variance-weighted B1; white noise gives
-M - 1, flicker far fewer); the reported interval is the central 90 % of noise-only std100 values,
-which is what a residual made of noise alone would show on that record.
+Uncertainty: the sample variance of M block means is a quadratic form in correlated Gaussian means.
+Its covariance follows from each power law's structure function of tau-means at lag k (the variogram
+of the block means, Barnes' B2(k, mu) x 2 AVAR(100 s)):
+
+    D(k) / D(1) = (2 f(1) + 2 f(k) - f(k+1) - f(|k-1|)) / (4 f(1) - f(2)),
+    f(t) = t^(mu+2)  (mu != 0),   f(t) = t^2 ln t  (flicker, mu = 0)
+
+With G = -D/2 and the centring matrix A, C = A G A is the covariance of the centred means; then
+E[s^2] = tr(C) / (M - 1) (which is Barnes' B1 again) and the Satterthwaite degrees of freedom are
+edf = tr(C)^2 / tr(C^2): M - 1 for white noise, far fewer under flicker (about 27 for 288 blocks of
+flicker noise, where the former (M - 1) / B1 claimed 70 and made the interval too narrow).  The
+reported interval is the central 90 % of noise-only std100 values on that record; ``limit_dph`` is
+the one-sided (1 - ``LIMIT_P``) quantile, above which a std100 is not noise alone at the level the
+structure tests use.
 """
 from __future__ import annotations
 
@@ -41,6 +51,40 @@ NOISE_MUS = (-2.0, -1.0, 0.0)          # those that make the floor (tau^1 and ta
 WHITE_MUS = (-2.0, -1.0)
 TAU_MAX_S = 1100.0
 INTERVAL = 0.90
+LIMIT_P = 0.01
+MAX_EDF_BLOCKS = 2000      # the edf's m x m covariance is built for at most this many blocks
+
+
+def _structure_ratio(k: np.ndarray, mu: float) -> np.ndarray:
+    """D(k) / D(1): the variogram of consecutive tau-means of a power-law noise at lag k (k >= 0)."""
+    k = np.asarray(k, dtype=np.float64)
+    p = mu + 2.0
+
+    def f(t):
+        t = np.asarray(t, dtype=np.float64)
+        if abs(mu) < 1e-12:
+            return np.where(t > 0, t ** 2 * np.log(np.where(t > 0, t, 1.0)), 0.0)
+        return np.where(t > 0, np.abs(t) ** p, 0.0)
+
+    den = 4.0 * f(1.0) - f(2.0)
+    return np.where(k == 0, 0.0, (2.0 * f(1.0) + 2.0 * f(k) - f(k + 1.0) - f(np.abs(k - 1.0))) / den)
+
+
+def block_means_edf(m: int, allan_parts: dict[float, float]) -> float:
+    """Satterthwaite degrees of freedom of the sample variance of ``m`` consecutive block means of a
+    sum of power-law noises (``allan_parts``: mu -> its Allan variance at the block length)."""
+    m = int(max(m, 2))
+    lags = np.abs(np.arange(m)[:, None] - np.arange(m)[None, :])
+    by_lag = np.zeros(m)
+    for mu, avar in allan_parts.items():
+        if avar > 0:
+            by_lag -= avar * _structure_ratio(np.arange(m), mu)   # -D/2 per lag, D(1) = 2 AVAR
+    g = by_lag[lags]
+    c = g - g.mean(axis=0, keepdims=True)
+    c = c - c.mean(axis=1, keepdims=True)                   # A G A
+    tr = float(np.trace(c))
+    tr2 = float(np.sum(c * c))
+    return tr * tr / tr2 if tr2 > 0 else float(m - 1)
 
 
 def barnes_b1(m: float, mu: float) -> float:
@@ -73,11 +117,14 @@ class NoiseModel:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")], "edf": 0.0,
                     "blocks": int(m)}
         allan_100 = sum(self.coef.get(mu, 0.0) * block_s ** mu for mu in mus)
-        b1_mix = var / allan_100 if allan_100 > 0 else 1.0
-        edf = max(1.0, (m - 1.0) / max(b1_mix, 1.0))
+        # beyond MAX_EDF_BLOCKS the edf of that many blocks is used: a lower bound (wider interval)
+        edf = max(1.0, block_means_edf(int(min(m, MAX_EDF_BLOCKS)),
+                                       {mu: self.coef.get(mu, 0.0) * block_s ** mu for mu in mus}))
         lo = np.sqrt(var * chi2.ppf((1 - INTERVAL) / 2, edf) / edf)
         hi = np.sqrt(var * chi2.ppf((1 + INTERVAL) / 2, edf) / edf)
-        return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(lo), float(hi)], "edf": float(edf),
+        limit = np.sqrt(var * chi2.ppf(1 - LIMIT_P, edf) / edf)
+        return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(lo), float(hi)],
+                "limit_dph": float(limit), "edf": float(edf),
                 "blocks": int(m), "adev100_dph": float(np.sqrt(max(allan_100, 0.0))),
                 "flicker_share": float(parts.get(0.0, 0.0) / var)}
 

@@ -1,11 +1,13 @@
 """The signal vocabulary: the one definition of each operation the fitting, close-the-loop, simulator
 and engine code share.  Pure functions over numpy arrays; units in every docstring.
 
-* ``segments``: ``run_segments``, ``block_means`` (segment-aware, NaN ignored per column).
+* ``segments``: ``run_segments``, ``block_means`` (segment-aware, NaN ignored per column), ``BlockPlan``
+  (the same blocks computed once for many columns).
 * ``rate``: ``temperature_rate(time_s, temp_c, window_s, method=...)`` in C/min
   (``RATE_METHODS``: "centred_slope", "savgol2"), ``smoothed_temperature``.
 * ``allan``: ``allan_deviation`` (one NaN policy, ``MIN_ALLAN_SAMPLES``).
-* ``stats``: ``lag1_autocorrelation``, ``newey_west_lags``, ``ols_hac``, ``hac_wald_test`` (chi2).
+* ``stats``: ``lag1_autocorrelation``, ``newey_west_lags``, ``ols_hac`` -> ``HacFit``, ``hac_wald_test``
+  (chi2), ``ljung_box``.
 * ``lstsq``: ``lstsq`` (column-equilibrated, rows with a non-finite value dropped) -> ``LinearFit``.
 * ``geometry``: orientation codes, ``EARTH_RATE_DPH``, ``earth_rate_enu`` / ``earth_rate_body``.
 """
@@ -33,23 +35,25 @@ from bench.signal.rate import (
     smoothed_temperature_and_rate,
     temperature_rate,
 )
-from bench.signal.segments import BlockMeans, block_means, run_segments
+from bench.signal.segments import BlockMeans, BlockPlan, block_means, run_segments
 from bench.signal.stats import (
+    HacFit,
     WaldTest,
     column_scale,
     finite_rows,
     hac_wald_test,
     lag1_autocorrelation,
+    ljung_box,
     newey_west_lags,
     ols_hac,
 )
 
 __all__ = [
-    "AllanDeviation", "BlockMeans", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
-    "EIGHT_POSITIONS", "LinearFit", "MIN_ALLAN_SAMPLES", "OrientationError", "RATE_METHODS", "WaldTest",
+    "AllanDeviation", "BlockMeans", "BlockPlan", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
+    "EIGHT_POSITIONS", "HacFit", "LinearFit", "MIN_ALLAN_SAMPLES", "OrientationError", "RATE_METHODS", "WaldTest",
     "allan_deviation", "bic", "block_means", "check_rate_method", "code_matrix", "column_scale",
     "earth_rate_body", "earth_rate_body_per_sample", "earth_rate_enu", "finite_rows", "hac_wald_test",
-    "lag1_autocorrelation", "lstsq", "newey_west_lags", "ols_hac", "orientation_axes",
+    "lag1_autocorrelation", "ljung_box", "lstsq", "newey_west_lags", "ols_hac", "orientation_axes",
     "orientation_axes_per_sample", "run_segments", "smoothed_temperature", "smoothed_temperature_and_rate",
     "temperature_rate", "validate_canonical_code", "validate_code",
 ]

@@ -17,7 +17,6 @@ one segment for ``savgol2`` and ``centred_slope`` handles gaps itself.
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 RATE_METHODS = ("centred_slope", "savgol2")
 DEFAULT_RATE_METHOD = "centred_slope"
@@ -77,6 +76,8 @@ def _savgol(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
         if w % 2 == 0:
             w -= 1
         if w >= 3:
+            from scipy.signal import savgol_filter   # scipy.signal takes seconds to import: only when used
+
             smooth[seg] = savgol_filter(xs, w, 2, mode="interp")
             rate[seg] = savgol_filter(xs, w, 2, deriv=1, delta=step / 60.0, mode="interp")
         else:

@@ -49,50 +49,63 @@ class BlockMeans(NamedTuple):
     first_index: np.ndarray
 
 
+class BlockPlan:
+    """Which block every sample of a time axis falls in (the rules of ``block_means``), computed once:
+    averaging many columns on the same axis then costs one weighted count each."""
+
+    def __init__(self, time_s: np.ndarray, block_s: float, segments: list[slice] | None = None, *,
+                 min_fraction: float = 0.5) -> None:
+        t = np.asarray(time_s, float)
+        if segments is None:
+            segments = [slice(0, t.size)] if t.size else []
+        block_of = np.full(t.size, -1, dtype=np.int64)   # global block number of each sample, -1 = unused
+        kept_blocks: list[np.ndarray] = []
+        out_segments: list[slice] = []
+        next_block = 0
+        pos = 0
+        for seg in segments:
+            ts = t[seg]
+            if ts.size == 0:
+                continue
+            step = float(np.median(np.diff(ts))) if ts.size > 1 else block_s
+            if block_s <= 0 or step >= 0.9 * block_s:          # already at (or coarser than) block spacing
+                ids = np.arange(ts.size)
+            else:
+                ids = np.floor((ts - ts[0]) / block_s).astype(np.int64)
+            uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
+            keep = counts >= min_fraction * np.median(counts)
+            block_of[seg] = next_block + inverse
+            kept_blocks.append(next_block + np.flatnonzero(keep))
+            next_block += uniq.size
+            m = int(keep.sum())
+            if m:
+                out_segments.append(slice(pos, pos + m))
+                pos += m
+        self.kept = np.concatenate(kept_blocks) if kept_blocks else np.zeros(0, dtype=np.int64)
+        self.used = block_of >= 0
+        self.ids_used = block_of[self.used]
+        self.n_blocks = next_block
+        self.segments = out_segments
+        first = np.full(next_block, -1, dtype=np.int64)
+        idx_used = np.flatnonzero(self.used)
+        first[self.ids_used[::-1]] = idx_used[::-1]                    # first sample of every block
+        self.first_index = first[self.kept]
+        self.time_s = self.means(t)
+
+    def means(self, values: np.ndarray) -> np.ndarray:
+        """Mean of ``values`` (one per sample of the axis) over every kept block, NaN ignored."""
+        v = np.asarray(values, float)[self.used]
+        ok = np.isfinite(v)
+        n = np.bincount(self.ids_used, weights=ok.astype(float), minlength=self.n_blocks)
+        s = np.bincount(self.ids_used, weights=np.where(ok, v, 0.0), minlength=self.n_blocks)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n > 0, s / np.maximum(n, 1), np.nan)[self.kept]
+
+
 def block_means(time_s: np.ndarray, columns: Mapping[str, np.ndarray], block_s: float,
                 segments: list[slice] | None = None, *, min_fraction: float = 0.5) -> BlockMeans:
     """Mean of every column over consecutive ``block_s``-second blocks inside each segment (see the
     module docstring for the rules).  ``segments`` defaults to the whole record as one segment.
     Unpacks as ``(time_s, columns, segments, first_index)``."""
-    t = np.asarray(time_s, float)
-    if segments is None:
-        segments = [slice(0, t.size)] if t.size else []
-    block_of = np.full(t.size, -1, dtype=np.int64)   # global block number of each sample, -1 = unused
-    kept_blocks: list[np.ndarray] = []
-    out_segments: list[slice] = []
-    next_block = 0
-    pos = 0
-    for seg in segments:
-        ts = t[seg]
-        if ts.size == 0:
-            continue
-        step = float(np.median(np.diff(ts))) if ts.size > 1 else block_s
-        if block_s <= 0 or step >= 0.9 * block_s:          # already at (or coarser than) block spacing
-            ids = np.arange(ts.size)
-        else:
-            ids = np.floor((ts - ts[0]) / block_s).astype(np.int64)
-        uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
-        keep = counts >= min_fraction * np.median(counts)
-        block_of[seg] = next_block + inverse
-        kept_blocks.append(next_block + np.flatnonzero(keep))
-        next_block += uniq.size
-        m = int(keep.sum())
-        if m:
-            out_segments.append(slice(pos, pos + m))
-            pos += m
-    kept = np.concatenate(kept_blocks) if kept_blocks else np.zeros(0, dtype=np.int64)
-    used = block_of >= 0
-    ids_used = block_of[used]
-
-    def mean_of(values: np.ndarray) -> np.ndarray:
-        v = np.asarray(values, float)[used]
-        ok = np.isfinite(v)
-        n = np.bincount(ids_used, weights=ok.astype(float), minlength=next_block)
-        s = np.bincount(ids_used, weights=np.where(ok, v, 0.0), minlength=next_block)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(n > 0, s / np.maximum(n, 1), np.nan)[kept]
-
-    first = np.full(next_block, -1, dtype=np.int64)
-    idx_used = np.flatnonzero(used)
-    first[ids_used[::-1]] = idx_used[::-1]                    # first sample of every block
-    return BlockMeans(mean_of(t), {k: mean_of(v) for k, v in columns.items()}, out_segments, first[kept])
+    plan = BlockPlan(time_s, block_s, segments, min_fraction=min_fraction)
+    return BlockMeans(plan.time_s, {k: plan.means(v) for k, v in columns.items()}, plan.segments, plan.first_index)

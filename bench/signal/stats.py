@@ -52,16 +52,63 @@ def column_scale(x: np.ndarray) -> np.ndarray:
     return scale
 
 
-def ols_hac(x: np.ndarray, y: np.ndarray, maxlags: int | None = None):
-    """statsmodels OLS of y on the columns of ``x`` with Newey-West (HAC) covariance; rows with a
-    non-finite value are dropped; ``maxlags`` defaults to ``newey_west_lags(n)``."""
-    import statsmodels.api as sm
+class HacFit(NamedTuple):
+    """Least squares with Newey-West (HAC) covariance: coefficients, their covariance, the residual
+    and the lag count used."""
 
+    params: np.ndarray
+    cov: np.ndarray
+    resid: np.ndarray
+    maxlags: int
+
+    @property
+    def pvalues(self) -> np.ndarray:
+        """Two-sided p-values of each coefficient against 0 (normal reference, as the HAC Wald test's
+        chi2)."""
+        from scipy.stats import norm
+
+        se = np.sqrt(np.maximum(np.diag(self.cov), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 2.0 * norm.sf(np.abs(self.params / se))
+
+
+def ols_hac(x: np.ndarray, y: np.ndarray, maxlags: int | None = None) -> HacFit:
+    """OLS of y on the columns of ``x`` with Newey-West (HAC) covariance, Bartlett weights, no
+    small-sample correction (statsmodels' ``OLS(...).fit(cov_type="HAC")``, written out in numpy: the
+    close-the-loop search calls it often and importing statsmodels costs more than the analysis);
+    rows with a non-finite value are dropped; ``maxlags`` defaults to ``newey_west_lags(n)``."""
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     ok = finite_rows(x, y)
-    lags = newey_west_lags(int(ok.sum())) if maxlags is None else int(maxlags)
-    return sm.OLS(y[ok], x[ok]).fit(cov_type="HAC", cov_kwds={"maxlags": lags})
+    x, y = x[ok], y[ok]
+    lags = newey_west_lags(len(y)) if maxlags is None else int(maxlags)
+    pinv = np.linalg.pinv(x)
+    beta = pinv @ y
+    resid = y - x @ beta
+    xu = x * resid[:, None]
+    s = xu.T @ xu
+    for lag in range(1, min(lags, len(y) - 1) + 1):
+        g = xu[lag:].T @ xu[:-lag]
+        s += (1.0 - lag / (lags + 1.0)) * (g + g.T)
+    bread = pinv @ pinv.T                                   # (X'X)^-1
+    return HacFit(beta, bread @ s @ bread.T, resid, lags)
+
+
+def ljung_box(x: np.ndarray, lags: int) -> tuple[float, float]:
+    """Ljung-Box statistic of the first ``lags`` autocorrelations of ``x`` (demeaned, non-finite
+    samples dropped) and its chi2(lags) p-value (statsmodels' ``acorr_ljungbox``, model_df = 0)."""
+    from scipy.stats import chi2
+
+    v = np.asarray(x, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    v = v - v.mean()
+    n = len(v)
+    den = float(v @ v)
+    if n <= lags or den <= 0:
+        raise ValueError(f"ljung_box: {n} samples with variance {den:.3g} cannot test {lags} lags")
+    acf = np.array([float(v[k:] @ v[:-k]) / den for k in range(1, lags + 1)])
+    q = float(n * (n + 2.0) * np.sum(acf ** 2 / (n - np.arange(1, lags + 1))))
+    return q, float(chi2.sf(q, lags))
 
 
 class WaldTest(NamedTuple):
@@ -79,9 +126,12 @@ def hac_wald_test(x: np.ndarray, y: np.ndarray, columns: list[int], maxlags: int
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     ok = finite_rows(x, y)
+    from scipy.stats import chi2
+
     res = ols_hac(x[ok] / column_scale(x[ok]), y[ok], maxlags)
-    r = np.zeros((len(columns), x.shape[1]))
-    for i, c in enumerate(columns):
-        r[i, c] = 1.0
-    test = res.wald_test(r, scalar=True, use_f=False)
-    return WaldTest(float(test.statistic), float(test.pvalue), len(columns), "chi2")
+    b = res.params[columns]
+    v = res.cov[np.ix_(columns, columns)]
+    stat = float(b @ np.linalg.pinv(v) @ b)
+    if not np.isfinite(stat):
+        raise ValueError("hac_wald_test: the robust covariance of the tested coefficients is not finite")
+    return WaldTest(stat, float(chi2.sf(stat, len(columns))), len(columns), "chi2")

@@ -33,6 +33,7 @@ from bench.sim.audit import Received
 from bench.sim.chamber import ChamberSimulator
 from bench.sim.chamber_physics import ChamberModel
 from bench.sim.gyro import GyroStreamSimulator
+from bench.sim.lookahead import Lookahead
 from bench.sim.physics import GyroPhysics, InputBatch, PhysicsInputs
 from bench.sim.psu import PsuModel, PsuSimulator
 from bench.sim.scenario import Scenario
@@ -106,17 +107,27 @@ class SimulatedBench:
         self.psu_model = PsuModel()
         self.psu_model.advance_to(t0)
         self._lock = threading.RLock()
-        self.physics = GyroPhysics(self.scenario, t0, _BenchInputs(self), output_period_s=1.0 / self.data_rate_hz)
+        if self.lockstep:
+            # integrated in blocks ahead of the clock, on exact device states (bench.sim.lookahead)
+            inputs = _RowInputs(self)
+            inputs.rows[t0] = device_inputs_row(self, self.chamber_model, self.table_model, self.psu_model, t0)
+            self.physics = GyroPhysics(self.scenario, t0, inputs, output_period_s=1.0 / self.data_rate_hz)
+            self.lookahead: Lookahead | None = Lookahead(self, self.physics, inputs)
+            source = self.lookahead
+        else:
+            self.physics = GyroPhysics(self.scenario, t0, _BenchInputs(self), output_period_s=1.0 / self.data_rate_hz)
+            self.lookahead = None
+            source = self.physics
         self.probe_names = list(self.scenario.probes)
         self.serials = probe_serials(self.probe_names)
         self.chamber = ChamberSimulator(self.chamber_model, self.clock)
         self.turntable = TurntableSimulator(self.table_model, self.clock)
         self.psu = PsuSimulator(self.psu_model, self.clock)
         frame = "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a"
-        self.gyro = GyroStreamSimulator(self.physics, self.clock, self.data_rate_hz, frame)
+        self.gyro = GyroStreamSimulator(source, self.clock, self.data_rate_hz, frame)
         # refresh the w1 files often in wall time: at x3600 a 20 ms refresh would make every reading
         # up to 72 bench seconds old (a real read triggers a fresh conversion)
-        self.w1 = W1TreeSimulator(self.physics, self.clock, self.w1_root, self.serials, min_wall_interval_s=0.005)
+        self.w1 = W1TreeSimulator(source, self.clock, self.w1_root, self.serials, min_wall_interval_s=0.005)
         self.started = False
 
     # ---------------------------------------------------------------- physics inputs
@@ -191,6 +202,8 @@ class SimulatedBench:
         supply, the gyro's thermal network and noise processes, the probes' last conversions, the gyro
         line's frame counter), for a run checkpoint.  ``restore`` puts it back."""
         with self._lock:
+            if self.lookahead is not None:
+                self.lookahead.settle()          # the physics at the instant, not a block ahead
             parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}
             return {"version": SNAPSHOT_VERSION, "t": self.clock.now(), "scenario": self.scenario.name,
                     "seed": self.seed,
@@ -207,11 +220,16 @@ class SimulatedBench:
                 if name not in parts:
                     raise ValueError(f"simulated bench snapshot has no {name!r} state")
                 vars(obj).update(parts[name])
+            if self.lookahead is not None:
+                self.lookahead.reset(float(snap["t"]))
         return float(snap["t"])
 
     def _state_objects(self) -> dict[str, Any]:
-        return {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
-                "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+        objects = {"chamber": self.chamber_model, "table": self.table_model, "psu": self.psu_model,
+                   "physics": self.physics, "inputs": self.physics.inputs, "w1": self.w1, "gyro": self.gyro}
+        if self.lookahead is not None:
+            del objects["inputs"]      # recorded again from the device models after a restore
+        return objects
 
     # ---------------------------------------------------------------- addresses
     @property
@@ -284,6 +302,7 @@ _SERVER_STATE = {
 
 
 def _fields(name: str, obj: Any) -> dict[str, Any]:
+    name = name.split(":")[0]          # "gyro:g2": the second gyro of a multi-gyro bench
     if name in _SERVER_STATE:
         return {key: getattr(obj, key) for key in _SERVER_STATE[name]}
     return {key: value for key, value in vars(obj).items()
@@ -311,21 +330,14 @@ class _BenchInputs(PhysicsInputs):
         self._still: tuple[bytes, np.ndarray, np.ndarray] | None = None   # pose of a table at rest
 
     def _record(self, t: float) -> None:
-        b = self.bench
         if self._n and t <= self._hist[self._n - 1, 0]:
             return
-        air = b._air_c(t)
-        outer, inner = b._angles(t)
-        r = b.table_model.rates()
-        on = b._powered(t)
-        since = b.psu_model.on_since if on else None
         if self._n == self.HISTORY:
             keep = self.HISTORY // 2
             self._hist[:keep] = self._hist[self._n - keep:self._n]
             self._n = keep
-        self._hist[self._n] = (t, air, outer, inner, r[b.geometry.outer_axis_number - 1],
-                               r[b.geometry.inner_axis_number - 1], float(on),
-                               np.nan if since is None else float(since))
+        self._hist[self._n] = device_inputs_row(self.bench, self.bench.chamber_model, self.bench.table_model,
+                                                self.bench.psu_model, t)
         self._n += 1
 
     def batch(self, times: np.ndarray) -> InputBatch:
@@ -334,7 +346,11 @@ class _BenchInputs(PhysicsInputs):
         h = self._hist[:self._n]
         # the span that matters: from the last state at or before the batch's first time
         first = max(0, int(np.searchsorted(h[:, 0], times[0], side="right")) - 1)
-        h = h[first:]
+        return self._from_history(times, h[first:])
+
+    def _from_history(self, times: np.ndarray, h: np.ndarray) -> InputBatch:
+        """Inputs at ``times`` from device states ``h`` (rows of ``device_inputs_row``, increasing
+        in time): interpolated between rows; a time that is a row's own time gets that row."""
         hist_t = h[:, 0]
         air = np.interp(times, hist_t, h[:, 1])
         table = h[:, 2:6]
@@ -370,6 +386,42 @@ class _BenchInputs(PhysicsInputs):
         inner_axis_level = r_outer @ b._inner_axis
         omega_level = w_outer[:, None] * b._outer_axis + w_inner[:, None] * inner_axis_level
         return body, np.einsum("nji,nj->ni", body, omega_level)
+
+
+class _RowInputs(_BenchInputs):
+    """The lockstep bench's physics inputs: device states recorded exactly at each time the physics
+    asks for (by ``bench.sim.lookahead.Lookahead``, on copies of the device models), no interpolation."""
+
+    def __init__(self, bench: "SimulatedBench") -> None:
+        super().__init__(bench)
+        self.rows: dict[float, np.ndarray] = {}
+
+    def batch(self, times: np.ndarray) -> InputBatch:
+        times = np.asarray(times, dtype=float)
+        try:
+            h = np.array([self.rows[float(t)] for t in times])
+        except KeyError as exc:
+            raise RuntimeError(f"lockstep physics inputs: no device state recorded for bench time {exc.args[0]!r}") from None
+        if times.size > 1 and np.any(np.diff(times) <= 0):       # interpolation needs increasing rows
+            h = np.unique(h, axis=0)
+        return self._from_history(times, h)
+
+
+def device_inputs_row(bench: "SimulatedBench", chamber: ChamberModel, table: TableModel, psu: PsuModel,
+                      t: float) -> np.ndarray:
+    """What the gyro physics takes from the other devices at bench time ``t`` (each model advanced to
+    ``t``): t, chamber air, outer and inner table angles and rates, supply output on, its switch-on time."""
+    chamber.advance_to(t)
+    table.advance_to(t)
+    psu.advance_to(t)
+    g = bench.geometry
+    a = table.angles()
+    r = table.rates()
+    on = bool(psu.output_on)
+    since = psu.on_since if on else None
+    return np.array((t, chamber.air_c, a[g.outer_axis_number - 1], a[g.inner_axis_number - 1],
+                     r[g.outer_axis_number - 1], r[g.inner_axis_number - 1], float(on),
+                     np.nan if since is None else float(since)))
 
 
 def _rotations(axis: np.ndarray, angles_deg: np.ndarray) -> np.ndarray:

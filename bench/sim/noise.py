@@ -15,7 +15,7 @@ results do not depend on the order in which streams are used nor on the chunk si
 from __future__ import annotations
 
 import numpy as np
-from scipy.signal import lfilter
+from scipy.signal import lfilter   # at import: importing it mid-run would stall the simulators
 
 from bench.sim.scenario import ChannelNoise, RandomSteps
 
@@ -72,6 +72,15 @@ class CorrelatedNoise:
     def value(self) -> float:
         return float(self._gm.sum() + self._rrw)
 
+    def get_state(self) -> tuple:
+        return (self._rng_gm.bit_generator.state, self._rng_rrw.bit_generator.state, self._gm.copy(), self._rrw)
+
+    def set_state(self, state: tuple) -> None:
+        gm_rng, rrw_rng, gm, self._rrw = state
+        self._rng_gm.bit_generator.state = gm_rng
+        self._rng_rrw.bit_generator.state = rrw_rng
+        self._gm = gm.copy()
+
     def advance(self, n: int, h: float) -> np.ndarray:
         """Advance ``n`` grid steps of ``h`` seconds; return the values after each step, shape (n,)."""
         out = np.zeros(n)
@@ -100,6 +109,12 @@ class WhiteNoise:
     def __init__(self, spec: ChannelNoise, seed: int, channel_index: int) -> None:
         self._arw = spec.arw_deg_rt_h
         self._rng = stream_rng(seed, STREAM_WHITE, channel_index)
+
+    def get_state(self) -> dict:
+        return self._rng.bit_generator.state
+
+    def set_state(self, state: dict) -> None:
+        self._rng.bit_generator.state = state
 
     def draw(self, n: int, period_s: float) -> np.ndarray:
         if self._arw <= 0:

@@ -576,15 +576,35 @@ class GyroPhysics:
                 traj = self._between(ts, base)
             if t_end == self._state.t:     # the state at the newest instant, for probe_temperatures
                 self._cache = (t_end, _select(traj, np.array([times.size - 1])))
-            out = self._outputs(traj, self.output_period_s)
-            samples = []
-            for k in range(times.size):
-                on = bool(out.powered[k])
-                rate = tuple(float(v) / 3600.0 for v in out.rate_dph[k]) if on else (0.0, 0.0, 0.0)
-                freq = None if out.freq_hz is None else tuple(float(v) for v in out.freq_hz[k])
-                samples.append(GyroSample(rate, tuple(float(v) for v in out.accel_g[k]), float(out.sensor_c[k]),
-                                          freq, bool(out.valid[k])))
-            return samples
+            return gyro_samples(self._outputs(traj, self.output_period_s), range(times.size))
+
+    def run_grid(self, n_steps: int) -> Outputs:
+        """Integrate and commit ``n_steps`` grid steps; the outputs at every new grid point with the
+        white noise of one output period each (frames on the integration grid: the values
+        ``sample_many`` gives for those times, computed for a whole block at once)."""
+        with self._lock:
+            traj = self._advance_grid(n_steps)
+            self._t_now = max(self._t_now, self._state.t)
+            return self._outputs(traj, self.output_period_s)
+
+    def checkpoint(self) -> tuple:
+        """Everything ``advance_to`` / ``sample_many`` change (committed state and the random
+        streams' positions), for ``rollback``; the random steps only grow in time order and need none."""
+        with self._lock:
+            return (self._state, self._t_now, self._cache,
+                    [c.get_state() for c in self._corr], [w.get_state() for w in self._white],
+                    self._rng_accel.bit_generator.state, self._rng_freq.bit_generator.state)
+
+    def rollback(self, cp: tuple) -> None:
+        """Back to a ``checkpoint`` (the caller then integrates again from there)."""
+        with self._lock:
+            self._state, self._t_now, self._cache, corr, white, accel, freq = cp
+            for c, st in zip(self._corr, corr):
+                c.set_state(st)
+            for w, st in zip(self._white, white):
+                w.set_state(st)
+            self._rng_accel.bit_generator.state = accel
+            self._rng_freq.bit_generator.state = freq
 
     def probe_temperatures(self) -> dict[str, float]:
         """True temperature at each probe position (C) at the last advance time."""
@@ -616,6 +636,18 @@ class GyroPhysics:
                 done += chunk
             self._t_now = max(self._t_now, self._state.t)
             return _concat(pieces)
+
+
+def gyro_samples(out: Outputs, rows) -> list[GyroSample]:
+    """The ``GyroSample`` (wire units: deg/s, zero rate while unpowered) of each row of ``out``."""
+    samples = []
+    for k in rows:
+        on = bool(out.powered[k])
+        rate = tuple(float(v) / 3600.0 for v in out.rate_dph[k]) if on else (0.0, 0.0, 0.0)
+        freq = None if out.freq_hz is None else tuple(float(v) for v in out.freq_hz[k])
+        samples.append(GyroSample(rate, tuple(float(v) for v in out.accel_g[k]), float(out.sensor_c[k]),
+                                  freq, bool(out.valid[k])))
+    return samples
 
 
 def _select(traj: Trajectory, idx: np.ndarray) -> Trajectory:

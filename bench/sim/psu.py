@@ -362,3 +362,50 @@ class PsuSimulator(LineServer):
             self.model.set_output(False)
         else:
             raise ScpiError(-104)
+
+
+class _SelectedChannel:
+    """The channel model the last ``INST:NSEL`` chose (what the one-channel commands act on)."""
+
+    def __init__(self, sim: "MultiChannelPsuSimulator") -> None:
+        self._sim = sim
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._sim.models[self._sim.selected - 1], name)
+
+
+class MultiChannelPsuSimulator(PsuSimulator):
+    """A supply with several outputs (``models``, channel 1..N): ``INSTrument[:SELect]:NSELect n``
+    selects the channel the other commands act on (``INST:NSEL?`` reads it back); out of range ->
+    ``-222,"Data out of range"``.  ``*RST`` resets every channel and selects channel 1."""
+
+    name = "scpi-psu-multi"
+
+    def __init__(self, models: list[PsuModel], clock: Clock, **kwargs: Any) -> None:
+        if not models:
+            raise ValueError("a multi-channel supply needs at least one channel model")
+        self.models = list(models)
+        self.selected = 1
+        super().__init__(_SelectedChannel(self), clock, **kwargs)   # type: ignore[arg-type]
+        self.commands.append(ScpiCommand("INSTrument:[SELect]:NSELect", self._select,
+                                         _query(lambda: str(self.selected))))
+
+    def handle_line(self, session: Any, line: bytes) -> bytes | None:
+        now = self.clock.now()
+        for model in self.models:          # a line may select any channel: every one at this bench instant
+            model.advance_to(now)
+        return super().handle_line(session, line)
+
+    def _select(self, args: list[str]) -> None:
+        value = self._number(args, "")
+        if value != int(value) or not 1 <= int(value) <= len(self.models):
+            raise ScpiError(-222)
+        self.selected = int(value)
+
+    def _common(self, header: str, args: list[str]) -> str | None:
+        if header.upper() == "*RST" and not args:
+            for model in self.models:
+                model.reset()
+            self.selected = 1
+            return None
+        return super()._common(header, args)

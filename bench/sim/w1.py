@@ -152,9 +152,16 @@ class W1TreeSimulator(BackgroundLoop):
         self._written: dict[str, str] = {}          # last w1_slave text written per probe
         self._last_read: dict[str, tuple[bytes, bytes]] = {}   # (scratchpad, retained) behind that text
         self._lock = threading.Lock()
+        self._dirs: dict[str, str] = {}              # device directory per probe (checked every instant)
 
     def device_dir(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}"
+
+    def _device_dir_str(self, name: str) -> str:
+        cached = self._dirs.get(name)
+        if cached is None:
+            cached = self._dirs[name] = str(self.device_dir(name))
+        return cached
 
     def _before_start(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)
@@ -186,7 +193,6 @@ class W1TreeSimulator(BackgroundLoop):
             now = self.clock.now()
             self.source.advance_to(now)
             temps = self.source.probe_temperatures()
-            self.root.mkdir(parents=True, exist_ok=True)
             for name in self.probes:
                 if name not in temps and self.faults.active(name) is None:
                     raise KeyError(f"probe source has no temperature for position {name!r} "
@@ -197,8 +203,8 @@ class W1TreeSimulator(BackgroundLoop):
 
     def _write_probe(self, name: str, celsius: float | None) -> None:
         fault = self.faults.active(name)
-        directory = self.device_dir(name)
         if fault == FAULT_VANISHED:
+            directory = self.device_dir(name)
             shutil.rmtree(directory, ignore_errors=True)
             self._written.pop(name, None)
             self._last_read.pop(name, None)
@@ -213,26 +219,37 @@ class W1TreeSimulator(BackgroundLoop):
         if current is None:
             current = good_scratchpad(celsius, self.resolution_bits)
         read = (current, self._retained[name])
-        if self._last_read.get(name) == read and name in self._written and directory.is_dir():
+        if self._last_read.get(name) == read and name in self._written and os.path.isdir(self._device_dir_str(name)):
             return              # the same conversion result as the files already show
+        directory = self._device_dir_str(name)
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
-        if self._written.get(name) == text and directory.is_dir():
+        present = os.path.isdir(directory)
+        if self._written.get(name) == text and present:
             self._last_read[name] = read
             return              # same conversion result: the files already say exactly this
-        directory.mkdir(parents=True, exist_ok=True)
-        _atomic_write(directory / "w1_slave", text)
-        temperature_file = directory / "temperature"
+        if not present:
+            os.makedirs(directory, exist_ok=True)
+        _atomic_write(os.path.join(directory, "w1_slave"), text)
+        temperature_file = os.path.join(directory, "temperature")
         if ok:
             _atomic_write(temperature_file, f"{millidegrees(raw_temperature(current))}\n")
         else:
-            temperature_file.unlink(missing_ok=True)
+            try:
+                os.unlink(temperature_file)
+            except FileNotFoundError:
+                pass
         self._written[name] = text
         self._last_read[name] = read
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}.{threading.get_ident()}")
-    tmp.write_text(text, encoding="ascii")
+def _atomic_write(path: str, text: str) -> None:
+    head, name = os.path.split(path)
+    tmp = os.path.join(head, f".{name}.tmp{os.getpid()}.{threading.get_ident()}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)
+    try:
+        os.write(fd, text.encode("ascii"))
+    finally:
+        os.close(fd)
     os.replace(tmp, path)

@@ -123,6 +123,11 @@ class Run(Base):
     heartbeat_at: Mapped[dt.datetime | None]
     error: Mapped[str | None] = mapped_column(Text)
     live: Mapped[dict[str, Any] | None]            # progress / ETA refreshed by the worker (0002_service)
+    # several gyros in one chamber (0005_gyro_units): the run of one gyro of a multi-gyro run names that
+    # run (the parent: plan, steps, status, chamber) and its fixture slot.  No database foreign key: see
+    # the migration (SQLite could only add or drop one by rebuilding ``runs``)
+    parent_id: Mapped[int | None] = mapped_column(Integer, index=True)
+    slot: Mapped[str | None] = mapped_column(String(32))
 
     gyro: Mapped[Gyro | None] = relationship()
     bench: Mapped[Bench | None] = relationship()

@@ -59,8 +59,16 @@ def ensure_bench(session: Session, name: str, config: Mapping[str, Any] | None =
 # ---------------------------------------------------------------- runs
 def create_run(session: Session, *, procedure: str, parameters: Mapping[str, Any] | None = None,
                config_snapshot: Mapping[str, Any] | None = None, operator: str = "", gyro_id: str | None = None,
-               bench_name: str | None = None, start_at: dt.datetime | None = None) -> Run:
-    """A new ``queued`` run.  The gyro and bench rows are created if missing (bench with the snapshot)."""
+               bench_name: str | None = None, start_at: dt.datetime | None = None,
+               units: Sequence[tuple[str, str]] | None = None) -> Run:
+    """A new ``queued`` run.  The gyro and bench rows are created if missing (bench with the snapshot).
+
+    ``units``: (slot, gyro id) per gyro of a multi-gyro run: the run is then the parent (no gyro of its
+    own) and gets one queued child run per gyro (``runs.parent_id`` / ``runs.slot``)."""
+    if units is not None:
+        if gyro_id is not None:
+            raise ValueError("a multi-gyro run names its gyros in units, not gyro_id")
+        _check_units(units)
     run = Run(procedure=procedure, parameters=dict(parameters or {}), config_snapshot=dict(config_snapshot or {}),
               operator=operator, status=RunStatus.QUEUED.value, start_at=start_at, progress=0.0)
     if gyro_id is not None:
@@ -69,7 +77,35 @@ def create_run(session: Session, *, procedure: str, parameters: Mapping[str, Any
         run.bench_id = ensure_bench(session, bench_name, config_snapshot if config_snapshot else None).id
     session.add(run)
     session.flush()
+    for slot, unit_gyro in units or ():
+        session.add(Run(procedure=procedure, parameters=dict(parameters or {}), config_snapshot=run.config_snapshot,
+                        operator=operator, status=RunStatus.QUEUED.value, start_at=start_at, progress=0.0,
+                        gyro_id=ensure_gyro(session, unit_gyro).gyro_id, bench_id=run.bench_id, parent_id=run.id,
+                        slot=slot))
+    session.flush()
     return run
+
+
+def _check_units(units: Sequence[tuple[str, str]]) -> None:
+    if not units:
+        raise ValueError("a multi-gyro run needs at least one (slot, gyro id)")
+    for what, values in (("slot", [u[0] for u in units]), ("gyro id", [u[1] for u in units])):
+        seen = set()
+        for value in values:
+            if value in seen:
+                raise ValueError(f"{what} {value!r} is named twice in one run")
+            seen.add(value)
+
+
+def unit_runs(session: Session, run_id: int) -> list[Run]:
+    """The child runs of a multi-gyro run, in slot order of creation (empty for a one-gyro run)."""
+    return list(session.scalars(select(Run).where(Run.parent_id == run_id).order_by(Run.id)))
+
+
+def own_units(session: Session, run_id: int, worker: str, now: dt.datetime | None = None) -> None:
+    """The worker that claimed (or took over) a multi-gyro run owns its child runs too."""
+    session.execute(update(Run).where(Run.parent_id == run_id)
+                    .values(worker=worker, heartbeat_at=now or utcnow()))
 
 
 def get_run(session: Session, run_id: int, *, for_update: bool = False) -> Run:
@@ -129,7 +165,9 @@ def claim_next_run(session: Session, worker: str, *, bench_id: int | None = None
     order of creation.  PostgreSQL: ``FOR UPDATE SKIP LOCKED`` so two workers never claim the same
     run; SQLite serialises writers anyway (the status is re-checked in the UPDATE)."""
     now = now or utcnow()
-    where = [Run.status == RunStatus.QUEUED.value, (Run.start_at.is_(None)) | (Run.start_at <= now)]
+    # a multi-gyro run's child runs are executed with their parent, never on their own
+    where = [Run.status == RunStatus.QUEUED.value, (Run.start_at.is_(None)) | (Run.start_at <= now),
+             Run.parent_id.is_(None)]
     if bench_id is not None:
         where.append(Run.bench_id == bench_id)
     stmt = select(Run.id).where(*where).order_by(Run.start_at.is_(None), Run.start_at, Run.id).limit(1)
@@ -143,6 +181,7 @@ def claim_next_run(session: Session, worker: str, *, bench_id: int | None = None
                                   started_at=func.coalesce(Run.started_at, now), **values))
     if res.rowcount != 1:
         return None
+    own_units(session, run_id, worker, now)
     session.flush()
     run = session.get(Run, run_id)
     session.refresh(run)
@@ -161,6 +200,7 @@ def stale_runs(session: Session, older_than: dt.timedelta) -> list[Run]:
     """Runs marked running/paused/stopping whose worker heartbeat is older than ``older_than``."""
     limit = utcnow() - older_than
     return list(session.scalars(select(Run).where(Run.status.in_(["running", "paused", "stopping"]),
+                                                  Run.parent_id.is_(None),
                                                   (Run.heartbeat_at.is_(None)) | (Run.heartbeat_at < limit))))
 
 

@@ -2,12 +2,17 @@
    /runs/{id}/<command>); live plots of chamber set point and air temperature, probe temperatures and
    gyro output from GET /runs/{id}/data (aligned 1-s means, fetched incrementally with t_from and
    decimated with every=N so a long run stays near MAX_POINTS points); events and status changes live
-   from the SSE stream GET /runs/{id}/events?follow=true (read with fetch, which can send the token). */
+   from the SSE stream GET /runs/{id}/events?follow=true (read with fetch, which can send the token).
+   A multi-gyro run (several gyros in one chamber) also lists its gyros (GET /runs/{id} "units": each
+   gyro's own run, state, gaps, latest readings) with a plot of each gyro's 1-s means from that gyro's
+   run (GET /runs/{unit run}/data, refetched at most every UNIT_REFRESH_MS). */
 "use strict";
 
 const RUN_ID = Number(pathParam(2));
 const TERMINAL = ["completed", "aborted", "failed"];
 const MAX_POINTS = 2000;
+const UNIT_POINTS = 500;
+const UNIT_REFRESH_MS = 10000;
 const CONTROLS = {
   pause: { label: "Pause", allowed: ["running", "suspended"] },
   resume: { label: "Resume", allowed: ["paused"] },
@@ -29,6 +34,8 @@ const state = {
   lastEventId: 0,
   stream: null,
   plots: {},
+  unitPlots: {},          // slot -> LinePlot of that gyro's 1-s means
+  unitsLoadedAt: 0,
 };
 
 /* -------------------------------------------------------------------------------- run state */
@@ -78,7 +85,58 @@ function renderSummary(run) {
   renderLatest(run.latest || {});
   renderSampling(run.sampling);
   renderSteps(run);
+  renderUnits(run);
   fill(document.getElementById("params"), paramTable(run.parameters || {}));
+}
+
+/* -------------------------------------------------------------------------------- gyros of a multi-gyro run */
+function renderUnits(run) {
+  const units = run.units || [];
+  const card = document.getElementById("units-card");
+  card.hidden = units.length === 0;
+  if (!units.length) return;
+  const rows = units.map((u) => {
+    const m = u.latest && u.latest.gyro && u.latest.gyro.mean_1s;
+    const mean = m && m.gyro.some((v) => v !== null && v !== undefined)
+      ? `${m.gyro.map((v) => fmtNum(v, 5)).join(", ")} (${m.output_unit})` : "–";
+    return el("tr", { dataset: { slot: u.slot } },
+      el("td", u.slot),
+      el("td", el("a", { href: `/ui/gyros/${encodeURIComponent(u.gyro_id)}` }, u.gyro_id)),
+      el("td", el("a", { href: `/ui/runs/${u.run_id}` }, `#${u.run_id}`)),
+      el("td", statusBadge(u.status, u.outcome)),
+      el("td.num", u.latest && u.latest.gyro ? String(u.latest.gyro.frames) : "–"),
+      el("td", mean),
+      el("td.num", u.gaps.length ? `${u.gaps.length} (${fmtDuration(u.bench_seconds_lost)})` : "0"),
+      el("td.wrap", u.error || ""));
+  });
+  fill(document.getElementById("units"),
+    el("table#units-table", el("thead", el("tr", ["Slot", "Gyro", "Its run", "State", "Frames", "Latest 1-s mean",
+      "Gaps (bench time lost)", "Fault"].map((h) => el("th", h)))), el("tbody", rows)));
+  const plots = document.getElementById("unit-plots");
+  for (const u of units) {
+    if (state.unitPlots[u.slot]) continue;
+    const canvas = el(`canvas#plot-unit-${u.slot}.plot`);
+    plots.append(el("div.card", el("h3", `${u.slot}: gyro ${u.gyro_id}, 1-s means (deg/h)`), canvas));
+    state.unitPlots[u.slot] = new LinePlot(canvas, { xLabel: "bench time since the run's first second (h)", yLabel: "deg/h" });
+  }
+  if (Date.now() - state.unitsLoadedAt >= UNIT_REFRESH_MS || TERMINAL.includes(run.status)) loadUnitData(run);
+}
+
+async function loadUnitData(run) {
+  state.unitsLoadedAt = Date.now();
+  const every = Math.max(1, Math.ceil((run.elapsed_bench_s || 0) / UNIT_POINTS));
+  for (const u of run.units || []) {
+    try {
+      const doc = await api(`/runs/${u.run_id}/data?stream=seconds&format=json&every=${every}`);
+      const t = doc.columns.bench_time_s || [];
+      const t0 = state.t0 !== undefined ? state.t0 : (t.length ? Math.floor(t[0]) : 0);
+      const names = Object.keys(doc.columns).filter((n) => n.startsWith("gyro_")).sort();
+      state.unitPlots[u.slot].setData(t.map((v) => (v - t0) / 3600),
+        names.map((n) => ({ name: n.replace(/^gyro_/, ""), values: doc.columns[n] })));
+    } catch (err) {
+      reportError(err, `the data of gyro ${u.gyro_id} (run ${u.run_id})`);
+    }
+  }
 }
 
 /* elapsed + remaining, and the plan's estimate when they differ noticeably (holds that waited for
@@ -363,6 +421,7 @@ function build() {
     plotCard("probes", "Probe temperatures (°C)"),
     plotCard("gyro", "Gyro output, 1-s means (deg/h)"),
     el("p#data-info.muted"),
+    el("div.card#units-card", { hidden: true }, el("h2", "Gyros in this run"), el("div#units"), el("div#unit-plots")),
     el("div.card", el("h2", "Sampling"), el("div#sampling")),
     el("div.card", el("h2", "Steps"), el("div#steps")),
     el("div.card", el("h2", "Parameters"), el("div#params")));

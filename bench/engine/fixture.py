@@ -1,0 +1,262 @@
+"""Acquisition for several gyros in one chamber (``FixtureAcquisition``).
+
+One ``Acquisition`` (``bench.engine.monitor``) per gyro unit reads that unit's line, probes and power
+into the unit's own run (the child run of the multi-gyro run), on the same bench-time schedule as a
+single gyro; the chamber and the table are read once per telemetry instant (each on its own period) and their readings go to
+the parent run and to every unit's run (so each unit's run is complete on its own: export, fits,
+gaps and sampling work on it unchanged).
+
+Conditions: the chamber's and the table's suspend the whole run.  A unit's own (its line down, its
+frames stopped, its probes lost or unreadable, its supply link, the config's probe / supply
+thresholds) follow ``BenchConfig.unit_faults``: ``suspend`` suspends the whole run (reason prefixed
+with the slot); ``continue`` marks the unit faulted from its last frame on (event ``unit_fault``),
+leaves its probes out of stability checks, and lets the others go on.  When the unit's condition
+clears (a line fault: once its frames come back, not merely when its power goes off), the outage is recorded as a gap of the unit's run (unless its link already recorded one);
+still faulted when the run ends, the gap runs to the end and the unit's run ends ``failed``
+("the run's outcome says so": the parent's final reason lists the failed units).
+
+For steps the fixture reads like one bench (``StepReadings``): probe names are ``<slot>/<probe>``
+of the units not faulted.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from bench.config import BenchConfig, TurntableGeometry
+from bench.devices.orientation import angles_for, code_at
+from bench.engine.config import EngineConfig
+from bench.engine.devices import Devices
+from bench.engine.monitor import Acquisition, _next_on_grid
+from bench.engine.outcomes import RunOutcome
+from bench.engine.store import RunStore
+from bench.interfaces import ChamberStatus
+
+LogFn = Callable[..., None]
+UNIT_SOURCES = ("gyro", "probes", "psu")          # what a unit owns; chamber and table are the bench's
+BENCH_SOURCES = ("chamber", "table")
+LINE_KEYS = ("gyro_link", "gyro_frames")           # conditions of a unit's line (``bench.engine.suspenders``)
+
+
+@dataclass
+class Unit:
+    slot: str
+    run_id: str
+    acq: Acquisition
+    fault_since: float | None = None
+    fault_reason: str | None = None
+    link_gaps_at_fault: int = 0
+    frames_at_fault: int = 0
+    line_fault: bool = False          # the line or its frames failed: only new frames end the fault
+    faults: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def faulted(self) -> bool:
+        return self.fault_since is not None
+
+
+class FixtureAcquisition:
+    def __init__(self, devices: Devices, store: RunStore, run_id: str, unit_runs: dict[str, str],
+                 config: BenchConfig, engine_config: EngineConfig, log: LogFn, now: float) -> None:
+        self.store = store
+        self.run_id = run_id
+        self.config = config
+        self.cfg = engine_config
+        self.log = log
+        self.policy = config.unit_faults
+        # the bench itself: chamber and table only
+        self.bench = Acquisition(devices, store, run_id, config, engine_config, log, now)
+        for source in UNIT_SOURCES:
+            self.bench.suspenders[source] = []
+        self.units: list[Unit] = []
+        for unit_dev in devices.units:
+            slot = config.slot(unit_dev.slot)
+            unit_config = config.model_copy(update={"gyro": slot.gyro, "probes": slot.probes, "gyros": []})
+            view = Devices(devices.chamber, devices.turntable, unit_dev.gyro, unit_dev.probes, unit_dev.psu)
+            acq = Acquisition(view, store, unit_runs[unit_dev.slot], unit_config, engine_config, log, now)
+            for source in BENCH_SOURCES:
+                acq.suspenders[source] = []
+            acq.next_telemetry = acq.next_table_psu = math.inf    # read once for all (``_read_telemetry``)
+            set_format = getattr(store, "set_format", None)
+            if set_format is not None:
+                set_format(unit_runs[unit_dev.slot], slot.gyro.frame, slot.gyro.data_rate_hz)
+            self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq))
+        self.next_telemetry = self.next_table_psu = now
+        self.conditions: dict[str, str] = {}
+
+    # ---- the engine's acquisition interface --------------------------------------------------
+    def tick(self, now: float, powered_since: float | None) -> None:
+        for unit in self.units:
+            unit.acq.tick(now, powered_since)
+        chamber = now >= self.next_telemetry
+        table_psu = now >= self.next_table_psu
+        if chamber:
+            self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
+        if table_psu:
+            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        if chamber or table_psu:
+            self._read_telemetry(now, chamber, table_psu)
+        self._update_conditions(now)
+
+    def next_due(self) -> float:
+        return min([self.next_telemetry, self.next_table_psu, *(unit.acq.next_due() for unit in self.units)])
+
+    def flush(self, now: float) -> None:
+        for unit in self.units:
+            unit.acq.flush(now)
+
+    def _read_telemetry(self, now: float, chamber: bool, table_psu: bool) -> None:
+        """The chamber (every ``telemetry_period_s``) and the table (every ``table_psu_period_s``) once,
+        to the parent and every unit's run; each unit's supply on the table's schedule."""
+        status = self.bench.read_chamber(now) if chamber else None
+        table = self.bench.read_table(now) if table_psu else None
+        self.bench.record_telemetry(now, status, table, None)
+        for unit in self.units:
+            psu = unit.acq.read_psu(now) if table_psu else None
+            if status is not None:
+                unit.acq.status, unit.acq.status_t = status, now
+            unit.acq.record_telemetry(now, status, table, psu)
+
+    # ---- conditions and unit faults -------------------------------------------------------------
+    def _update_conditions(self, now: float) -> None:
+        conditions = dict(self.bench.conditions)
+        for unit in self.units:
+            own = unit.acq.conditions
+            if self.policy == "suspend":
+                conditions.update({f"{unit.slot}:{key}": f"{unit.slot}: {text}" for key, text in own.items()})
+            elif own and not unit.faulted:
+                self._mark(unit, now, "; ".join(own.values()))
+            elif unit.faulted and not own and (not unit.line_fault or unit.acq.frames_total > unit.frames_at_fault):
+                self._recovered(unit, now)
+            if unit.faulted and any(key in LINE_KEYS for key in own):
+                unit.line_fault = True
+        self.conditions = conditions
+
+    def _mark(self, unit: Unit, now: float, reason: str) -> None:
+        last = unit.acq.last_frames_t
+        unit.fault_since = last if last is not None and last <= now else now
+        unit.fault_reason = reason
+        unit.link_gaps_at_fault = unit.acq.link_gaps_seen
+        unit.frames_at_fault = unit.acq.frames_total
+        unit.line_fault = False
+        unit.faults.append({"t_from": unit.fault_since, "reason": reason})
+        self.log("warning", "unit_fault", f"gyro unit {unit.slot} (run {unit.run_id}) marked faulted: {reason}; "
+                 f"the other units go on", slot=unit.slot, unit_run=unit.run_id, t_from=unit.fault_since)
+
+    def _recovered(self, unit: Unit, now: float) -> None:
+        assert unit.fault_since is not None
+        if unit.acq.link_gaps_seen == unit.link_gaps_at_fault:     # the link itself recorded no gap
+            self.store.add_gap(unit.run_id, unit.fault_since, now, _gap_reason(unit.fault_reason))
+        unit.faults[-1]["t_to"] = now
+        self.log("info", "unit_recovered", f"gyro unit {unit.slot} back after {now - unit.fault_since:.0f} s",
+                 slot=unit.slot, unit_run=unit.run_id)
+        unit.fault_since = unit.fault_reason = None
+
+    # ---- what steps read (``StepReadings``) ----------------------------------------------------
+    @property
+    def status(self) -> ChamberStatus | None:
+        return self.bench.status
+
+    @property
+    def status_t(self) -> float | None:
+        return self.bench.status_t
+
+    @property
+    def probe_reads(self) -> int:
+        return sum(unit.acq.probe_reads for unit in self.units)
+
+    @property
+    def probe_names(self) -> list[str]:
+        return [f"{unit.slot}/{name}" for unit in self.units if not unit.faulted for name in unit.acq.probe_names]
+
+    def read_chamber(self, now: float) -> ChamberStatus | None:
+        return self.bench.read_chamber(now)
+
+    def latest_probes(self) -> dict[str, float | None]:
+        return {f"{unit.slot}/{name}": value for unit in self.units if not unit.faulted
+                for name, value in unit.acq.latest_probes().items()}
+
+    def probe_rate_c_per_min(self, name: str, now: float, window_s: float) -> float | None:
+        slot, _, probe = name.partition("/")
+        return self._unit(slot).acq.probe_rate_c_per_min(probe, now, window_s)
+
+    def _unit(self, slot: str) -> Unit:
+        for unit in self.units:
+            if unit.slot == slot:
+                return unit
+        raise KeyError(f"no gyro unit {slot!r} in this run")
+
+    # ---- what the engine fans out to every unit's run --------------------------------------------
+    def add_segment(self, index: int, kind: str, t_from: float, t_to: float, labels: dict[str, Any]) -> None:
+        for unit in self.units:
+            self.store.add_segment(unit.run_id, index, kind, t_from, t_to, self._labels_for(unit.slot, labels))
+
+    def _labels_for(self, slot: str, labels: dict[str, Any]) -> dict[str, Any]:
+        """A slot mounted differently from the bench sees the table's position as another orientation of
+        its own axes: its segments carry that one (and the bench's as ``bench_position``)."""
+        position = labels.get("position")
+        geo = self.config.turntable.geometry
+        own = self.config.slot_mounting(self.config.slot(slot))
+        if not isinstance(position, str) or own is geo:
+            return labels
+        return {**labels, "position": slot_position(position, geo, own), "bench_position": position}
+
+    def add_gap(self, t_from_by_unit: Callable[[str], float], t_to: float, reason: str) -> None:
+        for unit in self.units:
+            self.store.add_gap(unit.run_id, t_from_by_unit(unit.run_id), t_to, reason)
+
+    def set_status(self, status: str, now: float, reason: str | None) -> None:
+        """The run's status, mirrored on every unit's run (a final one per unit: see ``finish``)."""
+        if status in tuple(RunOutcome):
+            return
+        for unit in self.units:
+            self.store.set_run_status(unit.run_id, status, now, None)
+
+    def finish(self, status: RunOutcome, now: float, reason: str | None) -> str | None:
+        """The run ends with ``status``: every unit's run ends too (a unit still faulted: its gap to the
+        end recorded, ``failed``).  Returns the run's final reason, naming the failed units."""
+        failed = []
+        for unit in self.units:
+            if unit.faulted:
+                assert unit.fault_since is not None
+                # no next frame will close this gap: its missing frames are the unit's rate over it
+                rate = self.config.slot(unit.slot).gyro.data_rate_hz
+                self.store.add_gap(unit.run_id, unit.fault_since, now, _gap_reason(unit.fault_reason),
+                                   frames_missing=max(0, int(round((now - unit.fault_since) * rate)) - 1))
+                unit.faults[-1]["t_to"] = now
+                text = f"{unit.fault_reason} (from bench time {unit.fault_since:.0f} to the end of the run)"
+                self.store.set_run_status(unit.run_id, RunOutcome.FAILED, now, text)
+                failed.append(f"{unit.slot}: {text}")
+            else:
+                self.store.set_run_status(unit.run_id, status, now, reason)
+        if not failed:
+            return reason
+        units = f"{len(failed)} of {len(self.units)} gyro units failed: " + "; ".join(failed)
+        return units if reason is None else f"{reason}; {units}"
+
+    # ---- checkpoint ------------------------------------------------------------------------------
+    def checkpoint(self) -> dict[str, Any]:
+        return {unit.slot: {"fault_since": unit.fault_since, "fault_reason": unit.fault_reason,
+                            "line_fault": unit.line_fault, "faults": unit.faults} for unit in self.units}
+
+    def restore(self, state: dict[str, Any] | None) -> None:
+        for unit in self.units:
+            saved = (state or {}).get(unit.slot)
+            if saved:
+                unit.fault_since, unit.fault_reason = saved.get("fault_since"), saved.get("fault_reason")
+                unit.line_fault = bool(saved.get("line_fault"))
+                unit.frames_at_fault = unit.acq.frames_total
+                unit.faults = list(saved.get("faults") or [])
+
+
+def slot_position(position: str, bench: TurntableGeometry, own: TurntableGeometry) -> str | None:
+    """The orientation code a unit mounted as ``own`` reaches when the table stands where the bench's
+    mounting reaches ``position`` (None: not an orientation code within 1 degree)."""
+    outer, inner = angles_for(position, bench)
+    code, off_deg = code_at(outer, inner, own)
+    return code if off_deg <= 1.0 else None
+
+
+def _gap_reason(reason: str | None) -> str:
+    return f"unit fault: {reason or 'unknown'}"[:64]

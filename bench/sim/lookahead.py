@@ -1,0 +1,239 @@
+"""The lockstep bench's gyro physics, integrated in blocks ahead of the clock and used only while
+nothing has changed.
+
+On a lockstep clock every bench instant (every 2 s) asks the physics for its frames (one or two) and
+the probes' temperatures.  Integrated one instant at a time, numpy's per-call overhead is most of a
+run's CPU.  ``Lookahead`` integrates a block of grid steps at once, up to ``MAX_AHEAD_S`` bench
+seconds past the instant, on *copies* of the chamber, turntable and supply models advanced one grid
+step at a time (their exact state at every grid time, no interpolation), and serves each instant's
+frames and probe temperatures from that block.
+
+Causality: a block is used for the next instant only if the real device models, which the simulators'
+front-ends read and command, are at that moment exactly in the state the copies had at the same bench
+instant (their pickled state, random generators of measurement noise aside).  Any difference (a set
+point, a move, the supply switched, an injected fault: anything a command or a test changed) drops the
+rest of the block: the physics is put back to the last served instant (``GyroPhysics.checkpoint`` /
+``rollback`` and the block's own inputs up to there) and integrates on from the real models' state.
+So a command acts at the bench instant it was given, as before; which blocks are computed depends
+only on bench-time events, so the same scenario and seed give the same data at any speed and load.
+
+Block mode needs the instants and the frames on the physics grid (the lockstep default: 1 Hz frames,
+a 1 s grid, instants on whole bench seconds).  Otherwise (an instant or a frame between grid points)
+the physics is driven instant by instant, as ``GyroPhysics.sample_many`` does, on the same exact
+device states.
+
+Block length: ``MIN_AHEAD_S`` after a block had to be dropped, doubling (to ``MAX_AHEAD_S``) each time
+a block is used to its end, so a stretch of commands (a table move) costs little extra work.
+"""
+from __future__ import annotations
+
+import io
+import math
+import pickle
+import random
+import threading
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+
+from bench.sim.physics import GyroPhysics, GyroSample, Outputs, gyro_samples
+
+if TYPE_CHECKING:   # pragma: no cover
+    from bench.sim.bench import SimulatedBench, _RowInputs
+
+_LOCKS = (type(threading.Lock()), type(threading.RLock()))
+_NOISE = (random.Random, np.random.Generator)      # measurement noise of reads: not the physics' inputs
+_SKIP_TYPES = frozenset(_LOCKS + _NOISE)
+MAX_BLOCK_STEPS = 100_000      # a longer jump (an outage passing) goes the physics' own chunked way
+
+
+def fingerprint(models: Sequence[Any]) -> bytes:
+    """The models' state as bytes: equal bytes, the same future physics inputs.  Pickled without a
+    memo, so equal values give equal bytes whether or not the model shares one object between fields."""
+    state: list[Any] = []
+    for m in models:
+        d = vars(m)
+        state.append(tuple(d))
+        state.append([v for v in d.values() if type(v) not in _SKIP_TYPES])
+    buf = io.BytesIO()
+    p = pickle.Pickler(buf, protocol=5)
+    p.fast = True            # no memo (the states hold no cycles)
+    p.dump(state)
+    return buf.getvalue()
+
+
+def clone(model: Any) -> Any:
+    """An independent copy of a device model (own lock, state deep-copied)."""
+    state = {k: v for k, v in vars(model).items() if not isinstance(v, _LOCKS)}
+    copy = object.__new__(type(model))
+    vars(copy).update(pickle.loads(pickle.dumps(state, protocol=5)))
+    for k, v in vars(model).items():
+        if isinstance(v, _LOCKS):
+            vars(copy)[k] = threading.RLock() if isinstance(v, _LOCKS[1]) else threading.Lock()
+    return copy
+
+
+@dataclass
+class _Block:
+    checkpoint: tuple                  # the physics at t0
+    t0: float                          # block start (an instant already served)
+    index: dict[float, int]            # grid time -> row of ``out``
+    out: Outputs
+
+
+class Lookahead:
+    """A ``GyroSource`` / probe source over ``GyroPhysics`` for the lockstep bench (module docstring)."""
+
+    MIN_AHEAD_S = 4.0
+    MAX_AHEAD_S = 128.0
+
+    def __init__(self, bench: "SimulatedBench", physics: GyroPhysics, inputs: "_RowInputs") -> None:
+        self.bench = bench
+        self.physics = physics
+        self.inputs = inputs
+        self.clock = bench.clock
+        self._lock = threading.RLock()
+        self._t = physics.clock_start          # the instant served last: the physics' public present
+        self._block: _Block | None = None
+        self._fp: bytes | None = None          # the real models' state when they were last advanced
+        self._ahead = self.MIN_AHEAD_S
+        self.stats = {"blocks": 0, "dropped": 0, "direct": 0}
+
+    # ---- GyroSource / ProbeSource ------------------------------------------------------------
+    def advance_to(self, t: float) -> None:
+        with self._lock:
+            self._at(float(t), None)
+
+    def sample(self, t: float) -> GyroSample:
+        return self.sample_many([t])[0]
+
+    def sample_many(self, times: Sequence[float]) -> list[GyroSample]:
+        times = [float(x) for x in times]
+        if not times:
+            return []
+        if any(b < a for a, b in zip(times, times[1:])):
+            raise ValueError("sample_many needs non-decreasing times")
+        with self._lock:
+            return self._at(max(self.clock.now(), times[-1], self._t), times)
+
+    def probe_temperatures(self) -> dict[str, float]:
+        with self._lock:
+            blk = self._block
+            if blk is None:
+                return self.physics.probe_temperatures()
+            row = blk.index[self._t]
+            return {p: float(v[row]) for p, v in blk.out.probes_c.items()}
+
+    def node_temperatures(self) -> dict[str, float]:
+        with self._lock:
+            blk = self._block
+            if blk is None:
+                return self.physics.node_temperatures()
+            temps = blk.out.trajectory.temps[blk.index[self._t]]
+            return {n: float(temps[i]) for n, i in self.physics._node_idx.items()}
+
+    # ---- continuity ---------------------------------------------------------------------------
+    def settle(self) -> None:
+        """Put the physics back at the last served instant (before a snapshot of the bench)."""
+        with self._lock:
+            self._settle()
+
+    def reset(self, t: float) -> None:
+        """After the physics was restored from a snapshot taken at bench time ``t``."""
+        with self._lock:
+            self._block = None
+            self._fp = None
+            self._t = float(t)
+            self._ahead = self.MIN_AHEAD_S
+            # the probes may be read at the restored instant before the clock moves
+            self.inputs.rows = {self._t: _row(self.bench, list(self._models()), self._t)}
+
+    # ---- internals ----------------------------------------------------------------------------
+    def _models(self) -> tuple[Any, Any, Any]:
+        b = self.bench
+        return b.chamber_model, b.table_model, b.psu_model
+
+    def _on_grid(self, t: float) -> bool:
+        """``t`` is exactly one of the grid times the physics integrates to from its committed state."""
+        ph = self.physics
+        return ph._state.t + ph.h * round((t - ph._state.t) / ph.h) == t
+
+    def _at(self, t: float, frames: list[float] | None) -> list[GyroSample]:
+        blk = self._block
+        if blk is not None and t >= self._t:
+            if t in blk.index and (t == self._t or fingerprint(self._models()) == self._fp):
+                rows = [blk.index.get(x) for x in frames] if frames else []
+                if None not in rows:
+                    self._serve_real(t)
+                    return gyro_samples(blk.out, rows)
+            if t not in blk.index and blk.index and max(blk.index) <= self._t:
+                self._ahead = min(self.MAX_AHEAD_S, 2 * self._ahead)    # used to its end
+            else:
+                self.stats["dropped"] += 1
+                self._ahead = self.MIN_AHEAD_S
+        if t <= self._t and frames is None:
+            return []
+        self._settle()
+        ph = self.physics
+        n_to_t = round((t - ph._state.t) / ph.h)
+        if (frames is None or all(self._on_grid(x) and x > self._t for x in frames)) and self._on_grid(t) \
+                and ph._state.t == self._t and 0 < n_to_t <= MAX_BLOCK_STEPS:
+            return self._build(t, n_to_t, frames)
+        return self._direct(t, frames)
+
+    def _serve_real(self, t: float) -> None:
+        """The real device models follow the clock (front-ends and tests read them at the instant)."""
+        if t == self._t and self._fp is not None:
+            return
+        models = self._models()
+        for m in models:
+            m.advance_to(t)
+        self._t = t
+        self._fp = fingerprint(models)
+
+    def _settle(self) -> None:
+        blk, ph = self._block, self.physics
+        self._block = None
+        if blk is None or ph._state.t <= self._t:
+            return
+        ph.rollback(blk.checkpoint)
+        k = round((self._t - blk.t0) / ph.h)
+        if k > 0:
+            ph.run_grid(k)                   # the same steps on the same recorded inputs
+
+    def _build(self, t: float, n_to_t: int, frames: list[float] | None) -> list[GyroSample]:
+        ph, b = self.physics, self.bench
+        t0 = ph._state.t
+        n = n_to_t + round(self._ahead / ph.h)
+        copies = [clone(m) for m in self._models()]
+        times = t0 + ph.h * np.arange(1, n + 1)          # the grid times GyroPhysics integrates to
+        self.inputs.rows = {g: _row(b, copies, g) for g in times.tolist()}
+        cp = ph.checkpoint()
+        out = ph.run_grid(n)
+        self._block = _Block(cp, t0, {g: i for i, g in enumerate(times.tolist())}, out)
+        self.stats["blocks"] += 1
+        self._serve_real(t)
+        return gyro_samples(out, [self._block.index[x] for x in frames]) if frames else []
+
+    def _direct(self, t: float, frames: list[float] | None) -> list[GyroSample]:
+        """One instant on the physics' own path (instants or frames off the grid)."""
+        ph, b = self.physics, self.bench
+        self.stats["direct"] += 1
+        for m in self._models():
+            m.advance_to(self._t)
+        copies = [clone(m) for m in self._models()]
+        base = ph._state.t
+        grid = [base + ph.h * k for k in range(1, int(math.floor((t - base) / ph.h + 1e-9)) + 1)]
+        wanted = sorted(set(grid) | set(frames or ()) | {t})
+        self.inputs.rows = {g: _row(b, copies, g) for g in wanted if g > self._t or g == t}
+        samples = ph.sample_many(frames) if frames else []
+        ph.advance_to(t)
+        self._serve_real(t)
+        return samples
+
+
+def _row(bench: "SimulatedBench", models: list[Any], t: float) -> np.ndarray:
+    from bench.sim.bench import device_inputs_row
+
+    return device_inputs_row(bench, models[0], models[1], models[2], t)

@@ -1,0 +1,131 @@
+"""Close-the-loop method details (issue 12): block means over measured samples only, parameter
+refinement beyond the scan grid, the noise floor's degrees of freedom under flicker noise, and the
+cross-validation entry of the report when blocked cross-validation cannot judge an effect."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from bench.fit import effects as fx
+from bench.fit.closeloop import close_loop
+from bench.fit.closeloop_report import render_close_loop_report
+from bench.fit.closeloop_search import (CV_CONFINED, FINE_S, SearchProblem, cv_gain_text, evidence_blocks)
+from bench.fit.noisefloor import NoiseModel, barnes_b1, block_means_edf
+from bench.signal import BlockPlan, block_means
+from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
+
+
+def _inputs(time_s: np.ndarray, temp: np.ndarray, since_on: np.ndarray | None = None) -> fx.Inputs:
+    since = time_s - time_s[0] if since_on is None else since_on
+    return fx.Inputs(time=time_s, temps={"t1": temp}, rates={"t1": fx.rate_c_per_min(temp, time_s, 300.0)},
+                     since_on=since, power_known=since_on is not None, up=None, input_rate=None)
+
+
+def _problem(fine: fx.Inputs, y_fine: np.ndarray, families: list[fx.Family]) -> SearchProblem:
+    ev = evidence_blocks(fine.time, {"y": y_fine, "one": np.where(np.isfinite(y_fine), 1.0, np.nan)})
+    return SearchProblem(yb=ev["y"], Xb=ev["one"][:, None], fine=fine, declared_signals_b=np.zeros((len(ev["y"]), 0)),
+                         families=families, fine_valid=np.isfinite(y_fine))
+
+
+def test_block_plan_gives_the_same_blocks_as_block_means():
+    rng = np.random.default_rng(1)
+    t = np.concatenate([np.arange(0.0, 1234.0, 1.0), np.arange(5000.0, 5777.0, 1.0)])
+    segments = [slice(0, 1234), slice(1234, len(t))]
+    a = rng.normal(size=len(t))
+    a[rng.random(len(t)) < 0.1] = np.nan
+    ref = block_means(t, {"a": a}, 100.0, segments)
+    plan = BlockPlan(t, 100.0, segments)
+    np.testing.assert_array_equal(plan.means(a), ref.columns["a"])
+    np.testing.assert_array_equal(plan.time_s, ref.time_s)
+    assert plan.segments == ref.segments
+    np.testing.assert_array_equal(plan.first_index, ref.first_index)
+
+
+def test_regressor_block_means_use_only_the_samples_where_the_target_was_measured():
+    # the gyro is off for the first 60 s of a 100-s block: the warm-up column must be averaged over
+    # the 40 s the target was measured, not diluted by the zeros of the off part
+    t = np.arange(5.0, 3000.0, FINE_S)
+    since = np.where(t < 1060.0, np.nan, t - 1060.0)
+    since[t < 500.0] = t[t < 500.0]
+    fine = _inputs(t, np.full(len(t), 20.0), since)
+    family = fx.Family("warmup", (), lambda x, tau: {"w": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)},
+                       "tau_s", (100.0, 200.0, 400.0))
+    y = np.where(np.isfinite(since), 3.0 * np.exp(-np.nan_to_num(since) / 200.0), np.nan)
+    problem = _problem(fine, y, [family])
+    col = problem.columns(family.at(200.0))[:, 0]
+    ok = np.isfinite(problem.yb)
+    # the column's block means follow the target's exactly (the target is 3 x the column)
+    np.testing.assert_allclose(problem.yb[ok], 3.0 * col[ok], rtol=1e-12)
+    assert problem.ssr((family.at(200.0),)) < 1e-20
+
+
+def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
+    t = np.arange(5.0, 40000.0, FINE_S)
+    temp = np.interp(t, [0, 5000, 12000, 20000, 27000, 40000], [20, 50, 50, 0, 0, 30])
+    fine = _inputs(t, temp)
+    family = fx.Family("hysteresis", (("probe", "t1"), ("form", "gradual")),
+                       lambda x, w: {"m": fx.duhem_state(x.rates["t1"], x.time, w)}, "width_c", (1.0, 2.0, 4.0, 8.0))
+    assert family.bounds == (0.5, 16.0)
+    truth = 0.6
+    y = 0.5 * fx.duhem_state(fine.rates["t1"], t, truth)
+    best, ssr = _problem(fine, y, [family]).best_value(family, ())
+    assert best.value == pytest.approx(truth, rel=0.05)
+    limited = fx.Family("warmup", (), family.builder, "tau_s", (1.0, 2.0), limits=(0.8, 3.0))
+    assert limited.bounds == (0.8, 3.0)
+    # a thermal lag is not refined below the grid's first time constant: shorter, it is a rate
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    lags = [f for f in fx.families(ctx, fine) if f.kind == "thermal_lag"]
+    assert lags and all(f.bounds[0] == fx.LAG_TAUS_S[0] for f in lags)
+
+
+def test_block_means_edf_is_exact_for_white_noise_and_small_under_flicker():
+    assert block_means_edf(100, {-1.0: 1.0}) == pytest.approx(99.0)
+    flicker = block_means_edf(288, {0.0: 1.0})
+    assert 20.0 < flicker < 0.5 * 287 / barnes_b1(288, 0.0)
+
+
+def test_flicker_floor_interval_covers_the_scatter_of_simulated_records():
+    # flicker (1/f) rate noise shaped in the frequency domain: its std of 100-s means over 8 h
+    # scatters far more than white noise's; the floor's 90 % interval must cover about 90 % of it
+    rng = np.random.default_rng(7)
+    n, dt = 28800, 1.0
+    f = np.fft.rfftfreq(n, dt)
+    shape = np.zeros_like(f)
+    shape[1:] = 1.0 / np.sqrt(f[1:])
+    stds = []
+    for _ in range(200):
+        x = np.fft.irfft(np.fft.rfft(rng.normal(size=n)) * shape, n)
+        stds.append(np.std(x.reshape(-1, 100).mean(axis=1), ddof=1))
+    stds = np.array(stds)
+    # the model: flicker only, its Allan variance level set from the mean of the simulated records
+    h0 = np.mean(stds ** 2) / barnes_b1(288, 0.0)
+    model = NoiseModel(coef={0.0: h0}, taus=np.array([100.0]), adev=np.array([np.sqrt(h0)]), tau_max_s=100.0)
+    fl = model.floor(n * dt)
+    lo, hi = fl["interval_dph"]
+    inside = np.mean((stds >= lo) & (stds <= hi))
+    assert 0.8 <= inside <= 0.97, (inside, fl)
+    assert fl["limit_dph"] > hi
+    assert np.mean(stds > fl["limit_dph"]) <= 0.04
+    assert fl["limit_dph"] == pytest.approx(fl["noise_floor_dph"] * np.sqrt(chi2.ppf(0.99, fl["edf"]) / fl["edf"]))
+
+
+def test_cross_validation_entry_says_why_it_does_not_apply():
+    assert cv_gain_text({"cv_gain": 0.254}) == "-25 %"
+    assert cv_gain_text({"cv_gain": float("nan"), "cv_not_applicable": CV_CONFINED}) == f"n/a ({CV_CONFINED})"
+    assert cv_gain_text({"cv_gain": float("nan")}).startswith("n/a (")
+
+
+def test_html_effects_table_never_prints_nan_for_cross_validation():
+    train, _ = make_run(TRAIN_PROFILE, {"gradient": 0.06}, seed=3)
+    validate, _ = make_run(VALIDATE_PROFILE, {"gradient": 0.06}, seed=4)
+    report = close_loop(train, validate, "static", channels=["x"], bin_c=None)
+    ch = report["channels"]["x"]
+    assert ch["effects_added"], ch["findings"]
+    for e in ch["effects_added"]:
+        e["evidence"]["cv_gain"] = float("nan")
+        e["evidence"]["cv_not_applicable"] = CV_CONFINED
+    page = render_close_loop_report(report, train, validate)
+    table = page[page.index("effects added"):]
+    table = table[: table.index("</table>")]
+    assert "nan" not in table and f"n/a ({CV_CONFINED})" in table

@@ -1,0 +1,324 @@
+"""Several gyros in one chamber (issue 16): the bench config's gyro slots, the multi-channel supply,
+the simulated bench with N units, and the two acceptance runs: three gyros in one run, each with its
+own data and coefficients by its ID; one gyro's line dropping mid-run (by bench time) while the
+other two complete."""
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from pydantic import ValidationError
+
+from api.app import create_app
+from bench.config import BenchConfig, GyroConfig, GyroSlot, ProbeConfig, PsuConfig, SlotPower
+from bench.devices.psu import PsuChannel, PsuCommandError, ScpiPowerSupply
+from bench.engine import Engine, EngineConfig
+from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
+from bench.engine.sqlstore import SqlRunStore, new_run, run_report
+from bench.sim.bench import lockstep_clock
+from bench.sim.multibench import MultiGyroBench, unit_scenario
+from bench.sim.psu import MultiChannelPsuSimulator, PsuModel
+from bench.sim.scenario import Scenario
+from bench.storage import open_database, queries
+from bench.storage.export import run_dataset
+from tests.api_support import VIEWER, TOKENS
+from tests.test_runs_support import cli
+
+SHORT = {"points_c": [20, 25, 30, 35], "soak_h": 0.04, "record_min": 0.5}
+
+
+def _slot(name: str, url: str, serial: str, **power) -> dict:
+    return {"slot": name, "gyro": {"url": url, "channel_probes": {"x": "t1"}},
+            "probes": {"probes": {"t1": serial}}, "power": power or {"channel": int(name[1:])}}
+
+
+# ---- config ---------------------------------------------------------------------------------------
+def test_single_gyro_config_unchanged_and_slots_validated():
+    single = BenchConfig()
+    assert not single.multi and single.gyros == [] and single.unit_faults == "continue"
+    ok = BenchConfig.model_validate({"gyros": [_slot("g1", "socket://h:1", "000000000001"),
+                                               _slot("g2", "socket://h:2", "000000000002",
+                                                     psu={"url": "socket://h:9"}, voltage_v=12)]})
+    assert ok.multi and [s.slot for s in ok.gyros] == ["g1", "g2"]
+    assert ok.slot("g2").power.psu.url == "socket://h:9" and ok.slot("g2").power.channel is None
+    bad = [
+        ([_slot("g1", "socket://h:1", "000000000001"), _slot("g1", "socket://h:2", "000000000002")],
+         r"gyros.1: slot 'g1' is already used by slot 'g1'"),
+        ([_slot("g1", "socket://h:1", "000000000001"), _slot("g2", "socket://h:1", "000000000002")],
+         r"gyros.1: gyro.url 'socket://h:1' is already used by slot 'g1'"),
+        ([_slot("g1", "socket://h:1", "000000000001"), _slot("g2", "socket://h:2", "000000000001")],
+         r"gyros.1: probe serial '000000000001' is already used"),
+        ([_slot("g1", "socket://h:1", "000000000001", channel=1, psu={"url": "x"})],
+         r"exactly one of channel .* / psu"),
+        ([{**_slot("g1", "socket://h:1", "000000000001"), "gyro": {"channel_probes": {"x": "t9"}}}],
+         r"gyros.0.gyro.channel_probes.x: 't9' is not a configured probe"),
+    ]
+    for gyros, match in bad:
+        with pytest.raises(ValidationError, match=match):
+            BenchConfig.model_validate({"gyros": gyros})
+
+
+def test_example_fixture_config_builds_a_fixture():
+    from pathlib import Path
+
+    from bench.clock import RealClock
+
+    cfg = BenchConfig.load(Path(__file__).resolve().parents[1] / "examples" / "bench-multi.json")
+    devices = build_devices(cfg, RealClock())      # drivers open nothing until used
+    try:
+        assert [u.slot for u in devices.units] == ["s1", "s2", "s3", "s4"]
+        kinds = [type(u.psu).__name__ for u in devices.units]
+        assert kinds == ["PsuChannel", "PsuChannel", "PsuChannel", "ScpiPowerSupply"]
+        assert [u.psu.channel for u in devices.units[:3]] == [1, 2, 3] and len(devices.shared) == 1
+        assert [u.gyro.lockstep_name for u in devices.units] == ["gyro:s1", "gyro:s2", "gyro:s3", "gyro:s4"]
+        assert devices.only(["s2", "s4"]).units[1].slot == "s4"
+        with pytest.raises(ValueError, match="no gyro slot s9"):
+            devices.only(["s9"])
+    finally:
+        close_devices(devices)
+
+
+def test_assign_gyros_to_slots():
+    cfg = BenchConfig.model_validate({"gyros": [_slot(f"g{k}", f"socket://h:{k}", f"00000000000{k}")
+                                                for k in (1, 2, 3)]})
+    assert cfg.assign_gyros(["A", "B"]) == [("g1", "A"), ("g2", "B")]
+    assert cfg.assign_gyros(["g2=A", "B"]) == [("g1", "B"), ("g2", "A")]
+    with pytest.raises(ValueError, match="4 gyros named but the bench has 3 slots"):
+        cfg.assign_gyros(["A", "B", "C", "D"])
+    with pytest.raises(ValueError, match="named twice"):
+        cfg.assign_gyros(["A", "A"])
+    with pytest.raises(KeyError, match="no gyro slot 'g7'"):
+        cfg.assign_gyros(["g7=A"])
+    with pytest.raises(ValueError, match="carries one gyro"):
+        BenchConfig().assign_gyros(["A"])
+
+
+# ---- the multi-channel supply ---------------------------------------------------------------------
+def test_psu_channels_over_one_line():
+    models = [PsuModel(), PsuModel(), PsuModel()]
+    sim = MultiChannelPsuSimulator(models, lockstep_clock(None, 1))
+    sim.start()
+    supply = ScpiPowerSupply(PsuConfig(url=sim.url))
+    try:
+        lock = threading.Lock()
+        ch = {n: PsuChannel(supply, n, lock) for n in (1, 2, 3)}
+        ch[2].set_voltage(12.5)
+        ch[3].set_voltage(28.0)
+        ch[3].output(True)
+        assert [m.output_on for m in models] == [False, False, True]
+        assert models[1].voltage_setting == pytest.approx(12.5) and models[0].voltage_setting != pytest.approx(12.5)
+        assert ch[3].output_state() and not ch[1].output_state()
+        assert ch[3].measure_voltage() == pytest.approx(28.0, abs=0.1) and ch[3].measure_current() > 0
+        assert ch[2].measure_current() == 0
+        volts, amps, on = ch[3].reading()                  # one program message, three answers
+        assert volts == pytest.approx(28.0, abs=0.1) and amps == pytest.approx(ch[3].measure_current()) and on
+        assert ch[1].reading()[2] is False
+        with pytest.raises(PsuCommandError, match=r"-222"):
+            PsuChannel(supply, 4, lock).output(True)
+    finally:
+        supply.close()
+        sim.stop()
+
+
+# ---- simulated units -------------------------------------------------------------------------------
+def test_unit_scenarios_seeded_different_and_hidden_effect_on_one_unit():
+    base = Scenario.builtin("default").with_changes(seed=7)
+    a = [unit_scenario(base, k) for k in range(3)]
+    assert a == [unit_scenario(base, k) for k in range(3)]           # deterministic by seed
+    intercepts = {round(s.bias["x"].intercept_dph, 9) for s in a}
+    assert len(intercepts) == 3 and len({s.seed for s in a}) == 3
+    assert unit_scenario(base.with_changes(seed=8), 0).bias["x"] != a[0].bias["x"]
+    warm = {"warmup": {"tau_s": 600.0, "amplitude_dph": {"x": 0.5}}}
+    hidden = unit_scenario(base, 1, effects=warm)
+    assert hidden.effects.warmup is not None and a[1].effects.warmup is None
+    assert hidden.bias == a[1].bias                                  # only the effect differs
+    with pytest.raises(ValueError, match="unknown effect"):
+        unit_scenario(base, 1, effects={"magic": {}})
+    with pytest.raises(ValueError, match="no slot g9"):
+        MultiGyroBench(units=2, clock=lockstep_clock(None, 7), unit_effects={"g9": warm})
+
+
+# ---- acceptance (a): three gyros, one run --------------------------------------------------------------
+def test_three_gyros_one_run_each_own_data_and_coefficients(tmp_path):
+    url = f"sqlite:///{tmp_path / 'multi.sqlite'}"
+    args = ["run", "eight_position", "--gyro", "U-A", "--gyro", "U-B", "--gyro", "g3=U-C", "--sim",
+            "--speed", "max", "--seed", "5", "--json", "--no-progress", "--db", url]
+    for key, value in SHORT.items():
+        args += ["--param", f"{key}={json.dumps(value)}"]
+    code, out, err = cli(args)
+    doc = json.loads(out)
+    assert code == 0 and doc["status"] == "completed", err[-3000:]
+    units = {u["slot"]: u for u in doc["units"]}
+    assert [(s, units[s]["gyro_id"]) for s in sorted(units)] == [("g1", "U-A"), ("g2", "U-B"), ("g3", "U-C")]
+    assert doc["frames"] == 0                       # the parent run holds the plan and the chamber, no frames
+    assert all(u["status"] == "completed" and u["gaps"] == [] for u in units.values())
+    assert len({u["frames"] for u in units.values()}) == 1 and units["g1"]["frames"] > 1000
+
+    truth = MultiGyroBench(units=3, clock=lockstep_clock(None, 5), seed=5).truth()
+    db = open_database(url)
+    try:
+        means = {}
+        for slot, unit in units.items():
+            ds = run_dataset(unit["run_id"], db, latitude_deg=45.75)
+            assert len(ds) > 500
+            means[slot] = np.array([np.nanmean(ds[f"gyro_{c}"]) for c in "xyz"])
+            with db.session() as s:
+                run = queries.get_run(s, unit["run_id"])
+                assert run.parent_id == doc["run_id"] and run.slot == slot and run.gyro_id == unit["gyro_id"]
+        assert not np.allclose(means["g1"], means["g2"]) and not np.allclose(means["g2"], means["g3"])
+    finally:
+        db.dispose()
+
+    client = TestClient(create_app(open_database(url), tokens=TOKENS))
+    try:
+        fitted = {}
+        for slot, unit in units.items():
+            r = client.get(f"/gyros/{unit['gyro_id']}/coefficients", headers=VIEWER)
+            assert r.status_code == 200, r.text
+            model = r.json()["models"][0]
+            assert model["model"] == "static"
+            fitted[slot] = {c: model["channels"][c]["coefficients"]["A0"] for c in "xyz"}
+        # each gyro's intercepts are its own unit's (seeded variation of 0.5 deg/h), not a neighbour's
+        for slot in units:
+            for c in "xyz":
+                own = truth[slot]["channels"][c]["intercept_dph"]
+                assert fitted[slot][c] == pytest.approx(own, abs=0.08), (slot, c, fitted, truth)
+        assert len({tuple(f.values()) for f in fitted.values()}) == 3
+        parent = client.get(f"/runs/{doc['run_id']}", headers=VIEWER).json()
+        assert [(u["slot"], u["status"]) for u in parent["units"]] == [("g1", "completed"), ("g2", "completed"),
+                                                                       ("g3", "completed")]
+    finally:
+        client.close()
+
+
+# ---- acceptance (b): one line drops mid-run --------------------------------------------------------------
+def _engine_run(db, bench, clock, cfg, ec, drop_at_s=None):
+    import procedures
+
+    module = procedures.get("eight_position")
+    params = module.Params.model_validate({**SHORT, "positions": ["ENU", "WSU"]})
+    run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
+                     config_snapshot=cfg.model_dump(mode="json"), gyro_id=None, bench_name=cfg.name,
+                     units=cfg.assign_gyros(["D-1", "D-2", "D-3"]))
+    if drop_at_s is not None:
+        bench.drop_line("g2", clock.now() + drop_at_s)
+    store = SqlRunStore(db, geometry=cfg.turntable.geometry)
+    devices = build_devices(cfg, clock)
+    engine = Engine(devices, store, clock, cfg, engine_config=ec,
+                    fit_hook=make_fit_hook(db, store, latitude_deg=cfg.latitude_deg))
+    t0 = clock.now()
+    try:
+        status = engine.run(str(run_id), module.build(params))
+    finally:
+        store.close(run_id)
+        close_devices(devices)
+    return run_id, status, t0
+
+
+def test_one_line_drops_mid_run_others_complete(db):
+    clock = lockstep_clock(None, 11)
+    bench = MultiGyroBench(units=3, clock=clock, seed=11).start()
+    try:
+        cfg = bench.bench_config()
+        run_id, status, t0 = _engine_run(db, bench, clock, cfg, engine_config_for(clock), drop_at_s=300.0)
+    finally:
+        bench.stop()
+    assert status == "completed"
+    report = run_report(db, run_id)
+    assert report["status"] == "completed" and report["suspensions"] == []
+    assert "1 of 3 gyro units failed: g2: gyro frames stopped" in report["status_reason"]
+    units = {u["slot"]: u for u in report["units"]}
+    assert units["g1"]["status"] == units["g3"]["status"] == "completed"
+    assert units["g1"]["gaps"] == units["g3"]["gaps"] == []
+    assert units["g2"]["status"] == "failed" and "gyro frames stopped" in units["g2"]["error"]
+    (gap,) = units["g2"]["gaps"]
+    # the gap starts at g2's last frame (the line dropped at bench time t0 + 300 s) and runs to the end
+    assert gap["t_from"] == pytest.approx(t0 + 300.0, abs=2.0) and gap["reason"].startswith("unit fault")
+    with db.session() as s:
+        end = queries.get_run(s, units["g2"]["run_id"]).live["status_t"]
+        events = [e.kind for e in queries.list_events(s, run_id)] if hasattr(queries, "list_events") else None
+    assert gap["t_to"] == pytest.approx(end)
+    assert units["g2"]["frames"] < 0.8 * units["g1"]["frames"] and units["g1"]["frames"] == units["g3"]["frames"]
+    # the procedure's fits ran per gyro: the two complete units have their coefficients
+    fit = next(iter(report["fits"].values()))
+    assert "units" in fit, report["fits"]
+    assert fit["units"]["g1"]["status"] == fit["units"]["g3"]["status"] == "done"
+    assert fit["units"]["g1"]["gyro_id"] == "D-1" and fit["units"]["g3"]["gyro_id"] == "D-3"
+    assert events.count("unit_fault") == 1
+
+
+def test_unit_fault_policy_suspend_suspends_the_whole_run(db):
+    clock = lockstep_clock(None, 12)
+    bench = MultiGyroBench(units=3, clock=clock, seed=12).start()
+    try:
+        cfg = bench.bench_config().model_copy(update={"unit_faults": "suspend"})
+        ec = engine_config_for(clock).model_copy(update={"suspension_cap_s": 600.0})
+        run_id, status, t0 = _engine_run(db, bench, clock, cfg, ec, drop_at_s=300.0)
+    finally:
+        bench.stop()
+    assert status == "aborted"
+    report = run_report(db, run_id)
+    (susp,) = report["suspensions"]
+    assert susp["reason"].startswith("g2: gyro frames stopped") and susp["t_from"] == pytest.approx(t0 + 312, abs=4)
+    assert "suspended for a total" in report["error"]
+
+
+# ---- the operator service: POST /runs with gyro_ids, executed by the bench worker ----------------------
+def test_api_queues_gyro_ids_and_the_worker_runs_them(tmp_path):
+    from bench.worker import Worker
+    from tests.api_support import OPERATOR, wait_for
+
+    db = open_database(f"sqlite:///{tmp_path / 'svc.sqlite'}")
+    clock = lockstep_clock(None, 13)
+    bench = MultiGyroBench(units=2, clock=clock, seed=13).start()
+    cfg = bench.bench_config().model_copy(update={"name": "fixture1"})
+    worker = Worker(db, "fixture1", cfg, None, clock, bench_state=bench, heartbeat_s=0.2, stale_after_s=5.0,
+                    poll_s=0.05, run_jobs=False)
+    client = TestClient(create_app(db, tokens=TOKENS))
+    try:
+        body = {"procedure": "thermal_ramp", "bench": "fixture1", "gyro_ids": ["W-1", "g2=W-2"],
+                "params": {"start_c": 26, "soak_h": 0.04, "warmup_min": 1, "rate_c_per_min": 2, "end_c": 22,
+                           "final_hold_min": 1}}
+        bad = client.post("/runs", json={**body, "gyro_id": "W-0"}, headers=OPERATOR)
+        assert bad.status_code == 422 and "exactly one of gyro_id" in bad.text
+        too_many = client.post("/runs", json={**body, "gyro_ids": ["A", "B", "C"]}, headers=OPERATOR)
+        assert too_many.status_code == 422 and "3 gyros named but the bench has 2 slots" in too_many.text
+        r = client.post("/runs", json=body, headers=OPERATOR)
+        assert r.status_code == 201, r.text
+        run_id = r.json()["id"]
+        queued = client.get(f"/runs/{run_id}", headers=VIEWER).json()
+        assert [(u["slot"], u["gyro_id"], u["status"]) for u in queued["units"]] == [
+            ("g1", "W-1", "queued"), ("g2", "W-2", "queued")]
+        assert worker.run_once() == run_id                 # the parent is claimed, never a child on its own
+        assert worker.run_once() is None
+        done = client.get(f"/runs/{run_id}", headers=VIEWER).json()
+        assert done["status"] == "completed", done.get("error")
+        assert [(u["slot"], u["status"]) for u in done["units"]] == [("g1", "completed"), ("g2", "completed")]
+        for u in done["units"]:
+            unit = client.get(f"/runs/{u['run_id']}", headers=VIEWER).json()
+            assert unit["parent_id"] == run_id and unit["gyro_id"] == u["gyro_id"]
+            assert unit["latest"]["gyro"]["frames"] > 100 and unit["sampling"]["probes"]["max_interval_s"] <= 2.0
+            data = client.get(f"/runs/{u['run_id']}/data?stream=seconds&format=json", headers=VIEWER).json()
+            assert len(data["columns"]["gyro_x"]) > 100
+        by_gyro = client.get("/runs?gyro_id=W-2", headers=VIEWER).json()["runs"]
+        assert [r["slot"] for r in by_gyro] == ["g2"]      # the gyro's runs: its own, as before
+    finally:
+        client.close()
+        bench.stop()
+        db.dispose()
+
+
+def test_a_slot_mounted_turned_sees_its_own_positions():
+    from bench.devices.orientation import EIGHT_POSITION_GEOMETRY as geo
+    from bench.engine.fixture import slot_position
+    from procedures.eight_position import EIGHT_POSITIONS
+
+    same = [slot_position(p, geo, geo.model_copy(update={"mounting": geo.mounting})) for p in EIGHT_POSITIONS]
+    assert same == list(EIGHT_POSITIONS)
+    # turned 180 degrees about its z axis: its x and y point the opposite way in every position
+    flip = {"E": "W", "W": "E", "N": "S", "S": "N", "U": "D", "D": "U"}
+    turned = [slot_position(p, geo, geo.model_copy(update={"mounting": "WSU"})) for p in EIGHT_POSITIONS]
+    assert turned == [flip[p[0]] + flip[p[1]] + p[2] for p in EIGHT_POSITIONS]
