@@ -10,9 +10,10 @@ from typer.testing import CliRunner
 
 from bench.cli import app
 from bench.fit.csvio import write_csv
+from tests import REFERENCE_DIR
 from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
 
-REFERENCE = Path(__file__).resolve().parents[2] / "shared" / "reference" / "hrg_frequency_temperature.csv"
+REFERENCE = REFERENCE_DIR / "hrg_frequency_temperature.csv"
 runner = CliRunner()
 
 

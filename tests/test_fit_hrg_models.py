@@ -20,8 +20,9 @@ from bench.fit.hrg import (
     predict_hrg,
     predict_hrg_reverse,
 )
+from tests import REFERENCE_DIR
 
-REF = Path("/work/shared/reference")
+REF = REFERENCE_DIR
 EQ2 = {"c3": -5.751e-7, "c2": -2.568e-4, "c1": 4.794e-1, "c0": 4.896e3}
 
 

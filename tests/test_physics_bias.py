@@ -9,6 +9,7 @@ import pytest
 from bench.sim.offline import simulate_full
 from bench.sim.physics import GyroPhysics, PhysicsInputs
 from bench.sim.scenario import Scenario
+from tests import REFERENCE_DIR
 
 # independent constants (not imported from the code under test).  bench.fit.base.EARTH_RATE_DPH is
 # 15.041067 (rounded; 15.0410686 from 7.2921158553e-5 rad/s): comparisons involving the Earth rate use
@@ -186,7 +187,7 @@ def test_live_sampling_equals_offline_record():
 
 
 def test_hrg_frequency_reproduces_seed002_table1_at_soak():
-    table = np.genfromtxt("/work/shared/reference/hrg_frequency_temperature.csv", delimiter=",", names=True,
+    table = np.genfromtxt(REFERENCE_DIR / "hrg_frequency_temperature.csv", delimiter=",", names=True,
                           skip_header=3)
     sc = Scenario.builtin("hrg").with_changes(noise={})
     for chamber in (-40.0, 0.0, 50.0):

@@ -1,6 +1,6 @@
 """Watlow F4 thermal-chamber driver over Modbus RTU or Modbus TCP (pymodbus 3.16 sync clients).
 
-Protocol facts (``/work/shared/reference/device-protocols.md`` section 1; TestEquity F4 resources,
+Protocol facts (``../shared/reference/device-protocols.md`` section 1; TestEquity F4 resources,
 Espec ``watlowf4.py``):
 
 * Holding registers; the register number goes on the wire as-is (reading 100 over RTU is

@@ -1,6 +1,6 @@
 """Gyro binary frame codecs: KVH 1750/1775 "Format A" and the bench's HRG frequency frame.
 
-Sources (see /work/shared/reference/device-protocols.md section 3.1): KVH 1775 IMU Technical Manual
+Sources (see ../shared/reference/device-protocols.md section 3.1): KVH 1775 IMU Technical Manual
 56-0298 Rev B tables 5-1/5-2/5-8/5-9 and the 1775 user manual "CRC Format".
 
 KVH Format A (36 bytes, every multi-byte field big-endian)

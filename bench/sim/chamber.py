@@ -2,7 +2,7 @@
 Modbus TCP and Modbus RTU-over-TCP with pymodbus 3.16, on top of the chamber physics and controller
 model (``bench.sim.chamber_physics.ChamberModel``, beside the gyro physics in ``bench.sim.physics``).
 
-Protocol facts used (``/work/shared/reference/device-protocols.md`` section 1, Watlow F4 via the
+Protocol facts used (``../shared/reference/device-protocols.md`` section 1, Watlow F4 via the
 TestEquity F4 resources and Espec's ``watlowf4.py``; pymodbus facts from section 5.1):
 
 * Holding registers, register number = PDU address (reading 100 over RTU is ``01 03 00 64 00 01 C5 D5``).
