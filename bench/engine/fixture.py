@@ -20,7 +20,6 @@ of the units not faulted.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -28,7 +27,7 @@ from bench.config import BenchConfig, TurntableGeometry
 from bench.devices.orientation import angles_for, code_at
 from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices
-from bench.engine.monitor import Acquisition, _next_on_grid
+from bench.engine.monitor import Acquisition, TelemetrySchedule
 from bench.engine.outcomes import RunOutcome
 from bench.engine.store import RunStore
 from bench.interfaces import ChamberStatus
@@ -62,7 +61,6 @@ class FixtureAcquisition:
         self.store = store
         self.run_id = run_id
         self.config = config
-        self.cfg = engine_config
         self.log = log
         self.policy = config.unit_faults
         # the bench itself: chamber and table only
@@ -77,30 +75,25 @@ class FixtureAcquisition:
             acq = Acquisition(view, store, unit_runs[unit_dev.slot], unit_config, engine_config, log, now)
             for source in BENCH_SOURCES:
                 acq.suspenders[source] = []
-            acq.next_telemetry = acq.next_table_psu = math.inf    # read once for all (``_read_telemetry``)
+            acq.telemetry.never()    # the chamber, table and supply are read once for all (``_read_telemetry``)
             set_format = getattr(store, "set_format", None)
             if set_format is not None:
                 set_format(unit_runs[unit_dev.slot], slot.gyro.frame, slot.gyro.data_rate_hz)
             self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq))
-        self.next_telemetry = self.next_table_psu = now
+        self.telemetry = TelemetrySchedule(engine_config, now)
         self.conditions: dict[str, str] = {}
 
     # ---- the engine's acquisition interface --------------------------------------------------
     def tick(self, now: float, powered_since: float | None) -> None:
         for unit in self.units:
             unit.acq.tick(now, powered_since)
-        chamber = now >= self.next_telemetry
-        table_psu = now >= self.next_table_psu
-        if chamber:
-            self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
-        if table_psu:
-            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        chamber, table_psu = self.telemetry.due(now)
         if chamber or table_psu:
             self._read_telemetry(now, chamber, table_psu)
         self._update_conditions(now)
 
     def next_due(self) -> float:
-        return min([self.next_telemetry, self.next_table_psu, *(unit.acq.next_due() for unit in self.units)])
+        return min([self.telemetry.next_due(), *(unit.acq.next_due() for unit in self.units)])
 
     def flush(self, now: float) -> None:
         for unit in self.units:

@@ -40,8 +40,7 @@ class Acquisition:
         self.frames_total = 0
         self.last_flush = now
         self.next_probe = now
-        self.next_telemetry = now
-        self.next_table_psu = now
+        self.telemetry = TelemetrySchedule(engine_config, now)
         self.link_gaps_seen = len(devices.gyro.stats.link_gaps)
         self.last_frames_t: float | None = None
         self.status: ChamberStatus | None = None
@@ -85,12 +84,7 @@ class Acquisition:
         if now >= self.next_probe:
             self.next_probe = _next_on_grid(self.next_probe, now, self.cfg.probe_period_s)
             self.read_probes(now)
-        chamber = now >= self.next_telemetry
-        table_psu = now >= self.next_table_psu
-        if chamber:
-            self.next_telemetry = _next_on_grid(self.next_telemetry, now, self.cfg.telemetry_period_s)
-        if table_psu:
-            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        chamber, table_psu = self.telemetry.due(now)
         if chamber or table_psu:
             self.read_telemetry(now, chamber=chamber, table_psu=table_psu)
         if len(self.buffer) >= self.cfg.frame_batch or now - self.last_flush >= self.cfg.frame_flush_s:
@@ -98,7 +92,7 @@ class Acquisition:
 
     def next_due(self) -> float:
         """Bench time of the next scheduled probe read or telemetry (the engine wakes for it)."""
-        return min(self.next_probe, self.next_telemetry, self.next_table_psu)
+        return min(self.next_probe, self.telemetry.next_due())
 
     def drain(self, now: float) -> None:
         link = self.devices.gyro
@@ -239,6 +233,33 @@ class Acquisition:
                          psu_reading: PsuReading | None) -> None:
         if status is not None or table or psu_reading is not None:
             self.store.add_telemetry(self.run_id, now, status, table, psu_reading)
+
+
+class TelemetrySchedule:
+    """The bench-time schedule of the chamber reads (every ``telemetry_period_s``) and of the turntable
+    and power-supply reads (every ``table_psu_period_s``), both due at once at the start."""
+
+    def __init__(self, engine_config: EngineConfig, now: float) -> None:
+        self.cfg = engine_config
+        self.next_chamber = now
+        self.next_table_psu = now
+
+    def due(self, now: float) -> tuple[bool, bool]:
+        """Which reads are due at ``now`` (chamber, table/PSU); advances their schedules."""
+        chamber = now >= self.next_chamber
+        table_psu = now >= self.next_table_psu
+        if chamber:
+            self.next_chamber = _next_on_grid(self.next_chamber, now, self.cfg.telemetry_period_s)
+        if table_psu:
+            self.next_table_psu = _next_on_grid(self.next_table_psu, now, self.cfg.table_psu_period_s)
+        return chamber, table_psu
+
+    def next_due(self) -> float:
+        return min(self.next_chamber, self.next_table_psu)
+
+    def never(self) -> None:
+        """Take these reads off this schedule (another owner reads the shared devices)."""
+        self.next_chamber = self.next_table_psu = math.inf
 
 
 def _next_on_grid(due: float, now: float, period: float) -> float:
