@@ -47,15 +47,8 @@ def test_one_percent_corruption_frames_missing_match_what_the_line_lost(db):
         link.stop()
         sim.stop()
     assert len(sent) == SECONDS * 1000 and len(got) == intact
-    first = next(k for k, s in enumerate(sent) if not s.corrupted)
-    last = max(k for k, s in enumerate(sent) if not s.corrupted)
-    lost_by_sim = sum(1 for s in sent[first:last + 1] if s.corrupted)
-    with FrameWriter(db, run_id, autostart=False, nominal_rate_hz=1000.0) as w:
-        w.add_many(got)
-    with db.session() as s:
-        gaps = queries.list_gaps(s, run_id)
-    counted = sum(g.frames_missing for g in gaps)
-    print(f"\n{db.dialect}: line lost {lost_by_sim} of {last - first + 1} frames; gap rows count {counted} "
+    lost_by_sim, span, gaps, counted = _store_and_count(db, run_id, sent, got)
+    print(f"\n{db.dialect}: line lost {lost_by_sim} of {span} frames; gap rows count {counted} "
           f"in {len(gaps)} rows")
     assert all(g.frames_missing is not None and g.frames_missing > 0 for g in gaps)
     assert {g.reason for g in gaps} == {"corruption"}
@@ -137,6 +130,18 @@ def test_frames_missing_stay_within_one_percent_when_the_host_reads_late(db):
     got = host.frames
     intact = [s for s in sent if not s.corrupted]
     assert [f.raw for f in got] == [s.frame for s in intact]
+    lost_by_sim, span, gaps, counted = _store_and_count(db, run_id, sent, got)
+    print(f"\n{db.dialect}, host reading late: line lost {lost_by_sim} of {span} frames; gap rows "
+          f"count {counted} in {len(gaps)} rows")
+    assert {g.reason for g in gaps} == {"corruption"}
+    assert abs(counted - lost_by_sim) <= 0.01 * lost_by_sim
+    times = np.asarray(read_frames(db, run_id).time)
+    assert np.all(np.diff(times) > 0)
+
+
+def _store_and_count(db, run_id, sent, got):
+    """Store the received frames and compare: the frames the simulator corrupted between the first and
+    last intact one (what the line lost), the span, the gap rows and the sum of their frames_missing."""
     first = next(k for k, s in enumerate(sent) if not s.corrupted)
     last = max(k for k, s in enumerate(sent) if not s.corrupted)
     lost_by_sim = sum(1 for s in sent[first:last + 1] if s.corrupted)
@@ -144,10 +149,4 @@ def test_frames_missing_stay_within_one_percent_when_the_host_reads_late(db):
         w.add_many(got)
     with db.session() as s:
         gaps = queries.list_gaps(s, run_id)
-    counted = sum(g.frames_missing for g in gaps)
-    print(f"\n{db.dialect}, host reading late: line lost {lost_by_sim} of {last - first + 1} frames; gap rows "
-          f"count {counted} in {len(gaps)} rows")
-    assert {g.reason for g in gaps} == {"corruption"}
-    assert abs(counted - lost_by_sim) <= 0.01 * lost_by_sim
-    times = np.asarray(read_frames(db, run_id).time)
-    assert np.all(np.diff(times) > 0)
+    return lost_by_sim, last - first + 1, gaps, sum(g.frames_missing for g in gaps)
