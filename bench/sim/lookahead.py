@@ -87,7 +87,7 @@ class Lookahead:
     """A ``GyroSource`` / probe source over ``GyroPhysics`` for the lockstep bench (module docstring)."""
 
     MIN_AHEAD_S = 4.0
-    MAX_AHEAD_S = 128.0
+    MAX_AHEAD_S = 512.0
 
     def __init__(self, bench: "SimulatedBench", physics: GyroPhysics, inputs: "_RowInputs") -> None:
         self.bench = bench
