@@ -392,6 +392,36 @@ def test_own_supply_unreachable_marks_only_its_unit_under_continue(tmp_path):
         db.dispose()
 
 
+def test_own_supply_lost_for_good_fails_only_its_unit(tmp_path):
+    """g2's own supply stops answering at +20 s and never comes back: g2's run ends failed with its gap
+    to the end, the others complete, and the parent's reason says that g2's supply missed the safe
+    state's power-off."""
+    from bench.engine.steps import GyroPower, Plan, Record
+
+    db = open_database(f"sqlite:///{tmp_path / 'psu-lost.sqlite'}")
+    clock = lockstep_clock(None, 25)
+    bench = MultiGyroBench(units=3, clock=clock, seed=25, own_supplies=["g2"]).start()
+    try:
+        cfg = bench.bench_config()
+        bench.drop_supply("g2", clock.now() + 20.0)
+        plan = Plan(name="power", steps=[GyroPower(on=True), Record(duration_s=60.0, labels={"p": 1})])
+        run_id, status, t_start = _plan_run(db, bench, clock, cfg, engine_config_for(clock), plan)
+        g2_still_on = bench.unit("g2").psu_model.output_on
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed" and g2_still_on          # nobody could switch it off
+        report = run_report(db, run_id)
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed", "failed", "completed"]
+        (gap,) = units["g2"]["gaps"]
+        assert t_start + 20.0 <= gap["t_from"] <= t_start + 31.0 and gap["frames_missing"] > 0
+        assert "1 of 3 gyro units failed: g2: power supply link down" in report["status_reason"]
+        assert "g2: its supply did not take the last command (output off)" in report["status_reason"]
+    finally:
+        db.dispose()
+
+
 def test_own_supply_unreachable_suspends_the_run_under_suspend(tmp_path):
     db = open_database(f"sqlite:///{tmp_path / 'psu-suspend.sqlite'}")
     clock = lockstep_clock(None, 22)
