@@ -179,6 +179,11 @@ class LockstepClock:
         with self._lock:
             self._receivers[name] = fn
 
+    def participants(self) -> list[str]:
+        """Names of the participants that serve each instant, in serving order."""
+        with self._lock:
+            return list(self._servers)
+
     def forget(self, name: str) -> None:
         with self._lock:
             self._servers.pop(name, None)
@@ -312,6 +317,10 @@ def clock_from_json(data: dict[str, Any]) -> Clock:
         return SteppedClock(float(data["now"]))
     if kind == "lockstep":
         return LockstepClock(float(data["now"]), data.get("pace"), hold_file=data.get("hold_file"))
+    if kind == "lockstep_link":      # a simulated bench in another process, driven from this one
+        from bench.clocklink import clock_from_link_json
+
+        return clock_from_link_json(data)
     raise ValueError(f"unknown clock kind {kind!r} in clock description {data!r}")
 
 

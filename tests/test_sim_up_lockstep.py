@@ -1,0 +1,156 @@
+"""Lockstep bench time across processes: ``bench sim up`` (the simulators) in one process, ``bench run
+--sim-endpoints`` (the engine) in another, driving the simulators' clock over the clock endpoint
+(``bench.clocklink``).  The same scenario and ``--seed`` record the same measured data at x600 and at
+``--speed max``; the link's protocol and its errors are checked on an in-process clock."""
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from bench.clock import LockstepClock, clock_from_json
+from bench.clocklink import LINK_KIND, ClockLinkServer, attach
+from bench.errors import LinkDown, ProtocolError
+from tests.service_support import PY, SAFETY_S, Services
+
+SHORT = ["start_c=30", "soak_h=0.05", "warmup_min=5", "rate_c_per_min=1", "end_c=22", "final_hold_min=5"]
+
+
+def _sim_up(services: Services, endpoints: Path, log: str, seed: int = 7) -> subprocess.Popen:
+    proc = services.spawn([PY, "-m", "bench.cli", "sim", "up", "--seed", str(seed), "--endpoints-json",
+                           str(endpoints)], log)
+    services.wait_for(lambda: endpoints.exists(), "bench sim up to write its endpoints file", proc)
+    return proc
+
+
+def _bench(services: Services, args: list[str], ok: bool = True) -> subprocess.CompletedProcess:
+    p = subprocess.run([PY, "-m", "bench.cli", *args], cwd=services.tmp, env=services.env, capture_output=True,
+                       text=True, timeout=SAFETY_S)
+    if ok:
+        assert p.returncode == 0, (args, p.stdout[-2000:], p.stderr[-3000:])
+    return p
+
+
+def _record(services: Services, tmp: Path, name: str, speed: str) -> tuple[list[str], dict]:
+    """One short thermal ramp on a fresh ``bench sim up --seed 7``, driven at ``speed``; its CSV lines."""
+    endpoints = tmp / f"{name}-endpoints.json"
+    sim = _sim_up(services, endpoints, f"{name}-sim.log")
+    doc = json.loads(endpoints.read_text())
+    assert doc["clock"]["kind"] == LINK_KIND and doc["seed"] == 7
+    url = f"sqlite:///{tmp / (name + '.sqlite')}"
+    args = ["run", "thermal_ramp", "--gyro", "L1", "--sim-endpoints", str(endpoints), "--speed", speed,
+            "--json", "--no-progress", "--db", url]
+    for p in SHORT:
+        args += ["--param", p]
+    run = json.loads(_bench(services, args).stdout.strip().splitlines()[-1])
+    assert run["status"] == "completed", run
+    services.stop(sim)
+    assert sim.returncode == 0, services.log_of(sim).read_text()[-2000:]
+    out = tmp / f"{name}.csv"
+    _bench(services, ["export", str(run["run_id"]), "--format", "csv", "-o", str(out), "--db", url])
+    show = json.loads(_bench(services, ["runs", "show", str(run["run_id"]), "--json", "--db", url]).stdout)
+    return out.read_text().splitlines(), show
+
+
+def test_sim_up_seed_records_the_same_csv_at_x600_and_at_max(tmp_path):
+    with Services(tmp_path) as services:
+        paced, show = _record(services, tmp_path, "x600", "600")
+        fast, _ = _record(services, tmp_path, "max", "max")
+    assert len(paced) > 800
+    diff = [(i, a, b) for i, (a, b) in enumerate(zip(paced, fast)) if a != b]
+    assert len(paced) == len(fast) and not diff, diff[:3]
+    # sampled at the real bench-time rates although the simulators run in another process
+    sampling = show["sampling"]
+    assert sampling["probes"]["readings"] > 100 and sampling["probes"]["max_interval_s"] <= 2.0
+    assert sampling["chamber"]["max_interval_s"] <= 5.0
+    assert sampling["gyro"]["median_interval_s"] == pytest.approx(1.0)
+    assert sampling["gyro"]["max_interval_s"] <= 1.0 + 1e-6
+
+
+def test_run_fails_clearly_when_the_sim_process_is_gone(tmp_path):
+    with Services(tmp_path) as services:
+        endpoints = tmp_path / "endpoints.json"
+        sim = _sim_up(services, endpoints, "sim.log")
+        services.stop(sim)
+        p = _bench(services, ["run", "thermal_ramp", "--gyro", "L1", "--sim-endpoints", str(endpoints),
+                              "--no-progress", "--db", f"sqlite:///{tmp_path / 'gone.sqlite'}"], ok=False)
+    assert p.returncode != 0
+    assert "simulated bench clock at 127.0.0.1:" in p.stderr and "bench sim up" in p.stderr, p.stderr[-2000:]
+
+
+# ---- the link on an in-process clock ---------------------------------------------------------------
+class _Counter:
+    """A participant: serves each instant once and reports it (as the gyro line reports bytes)."""
+
+    def __init__(self) -> None:
+        self.served: list[float] = []
+
+    def __call__(self, t: float) -> dict:
+        self.served.append(t)
+        return {"t": t, "n": len(self.served)}
+
+
+@pytest.fixture
+def served_clock():
+    clock = LockstepClock(1000.0, None)
+    first, second = _Counter(), _Counter()
+    clock.serve("first", first)
+    clock.serve("second", second)
+    server = ClockLinkServer(clock).start()
+    try:
+        yield clock, server, first, second
+    finally:
+        server.stop()
+
+
+def test_driving_clock_serves_every_instant_in_the_other_clock(served_clock):
+    clock, server, first, second = served_clock
+    driving = clock_from_json({**server.to_json(None), "pace": None})
+    assert driving.now() == 1000.0 and driving.participants() == ["first", "second"]
+    got = []
+    driving.receive("check", lambda t, reports: got.append((t, reports, clock.now())))
+    driving.sleep(2.0)
+    driving.advance_to(1003.5)
+    assert first.served == [1002.0, 1003.5] and second.served == [1002.0, 1003.5]
+    assert clock.now() == 1003.5
+    # receivers run after the other process served the instant, with its reports
+    assert got[0] == (1002.0, {"first": {"t": 1002.0, "n": 1}, "second": {"t": 1002.0, "n": 1}}, 1002.0)
+    driving.serve_now()                   # serving the same instant again (a driver that connected since)
+    assert first.served[-1] == 1003.5 and len(first.served) == 3
+    driving.link.close()
+
+
+def test_link_refuses_a_second_driver_going_back_and_bad_requests(served_clock):
+    clock, server, _first, _second = served_clock
+    driving = attach(server.address, None)
+    with pytest.raises(LinkDown, match="busy: another process drives"):
+        attach(server.address, None)
+    driving.sleep(10.0)
+    with pytest.raises(ProtocolError, match="cannot go back"):
+        driving.link.advance(1005.0)
+    assert server.handle("ADVANCE soon").startswith("ERR ADVANCE needs a bench time")
+    assert server.handle("JUMP 5").startswith("ERR unknown request")
+    driving.link.close()
+    # the first driver gone, another may drive from where it stopped
+    again = attach(server.address, None)
+    assert again.now() == 1010.0
+    again.link.close()
+
+
+def test_link_down_names_the_endpoint_when_the_simulator_process_is_gone(served_clock):
+    _clock, server, _first, _second = served_clock
+    address = server.address
+    driving = attach(address, None)
+    server.stop()
+    with pytest.raises(LinkDown, match=f"simulated bench clock at {address}: .*bench sim up"):
+        driving.sleep(1.0)
+    with pytest.raises(LinkDown, match="bench sim up"):       # and at once on every later instant
+        driving.sleep(1.0)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        free = s.getsockname()[1]
+    with pytest.raises(LinkDown, match=f"127.0.0.1:{free}: cannot connect"):
+        attach(f"127.0.0.1:{free}", None)
