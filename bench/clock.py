@@ -12,7 +12,9 @@ Time is "bench seconds" on a Unix-like axis (float seconds).  Three implementati
   ``serve(name, fn)`` (w1 files rewritten, gyro frames up to that instant written on the line) and
   then *received* by every driver registered with ``receive(name, fn)`` (the gyro link has read those
   bytes) before ``sleep`` returns.  ``pace`` is a limit: never faster than ``pace`` x wall; ``None``
-  runs as fast as the host can.  A busy host only slows the run; the data do not change.
+  runs as fast as the host can.  A busy host only slows the run; the data do not change.  Across
+  processes (``bench sim up``) the simulators' lockstep clock is driven from the engine's process over
+  a clock endpoint (``bench.clocklink``; ``clock_from_json`` of kind ``lockstep_link``).
 
 Network I/O (socket timeouts) is always in wall seconds; only waiting *for the bench* (soaks, record
 durations, settle times) uses the clock.

@@ -55,13 +55,32 @@ def _record(services: Services, tmp: Path, name: str, speed: str) -> tuple[list[
     return out.read_text().splitlines(), show
 
 
+def _record_in_process(services: Services, tmp: Path) -> list[str]:
+    """The same run with the simulated bench in the engine's process (``bench run --sim --seed 7``)."""
+    url = f"sqlite:///{tmp / 'inproc.sqlite'}"
+    args = ["run", "thermal_ramp", "--gyro", "L1", "--sim", "--seed", "7", "--speed", "max", "--json",
+            "--no-progress", "--db", url]
+    for p in SHORT:
+        args += ["--param", p]
+    run = json.loads(_bench(services, args).stdout.strip().splitlines()[-1])
+    out = tmp / "inproc.csv"
+    _bench(services, ["export", str(run["run_id"]), "--format", "csv", "-o", str(out), "--db", url])
+    return out.read_text().splitlines()
+
+
+def _same(a: list[str], b: list[str]) -> None:
+    diff = [(i, x, y) for i, (x, y) in enumerate(zip(a, b)) if x != y]
+    assert len(a) == len(b) and not diff, (len(a), len(b), diff[:3])
+
+
 def test_sim_up_seed_records_the_same_csv_at_x600_and_at_max(tmp_path):
     with Services(tmp_path) as services:
         paced, show = _record(services, tmp_path, "x600", "600")
         fast, _ = _record(services, tmp_path, "max", "max")
+        in_process = _record_in_process(services, tmp_path)
     assert len(paced) > 800
-    diff = [(i, a, b) for i, (a, b) in enumerate(zip(paced, fast)) if a != b]
-    assert len(paced) == len(fast) and not diff, diff[:3]
+    _same(paced, fast)
+    _same(paced, in_process)          # the process boundary changes nothing either
     # sampled at the real bench-time rates although the simulators run in another process
     sampling = show["sampling"]
     assert sampling["probes"]["readings"] > 100 and sampling["probes"]["max_interval_s"] <= 2.0
