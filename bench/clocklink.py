@@ -57,6 +57,16 @@ def _parse_address(address: str) -> tuple[str, int]:
     return host, int(port)
 
 
+def _closed_by_peer(sock: socket.socket) -> bool:
+    """True when the other end closed ``sock`` (or it failed); peeks, so no request is consumed."""
+    try:
+        return sock.recv(1, socket.MSG_PEEK | socket.MSG_DONTWAIT) == b""
+    except (BlockingIOError, InterruptedError):
+        return False
+    except OSError:
+        return True
+
+
 # ---------------------------------------------------------------------------------------- server side
 class ClockLinkServer:
     """Serves ``clock`` (the simulator process's ``LockstepClock``) on a TCP clock endpoint (module
@@ -71,6 +81,7 @@ class ClockLinkServer:
         self._thread: threading.Thread | None = None
         self._driver: socket.socket | None = None
         self._driver_lock = threading.Lock()
+        self._handling = threading.Lock()
         self._stop = threading.Event()
         self.instants_served = 0
 
@@ -127,6 +138,8 @@ class ClockLinkServer:
                 return
             with self._driver_lock:
                 busy = self._driver
+                if busy is not None and _closed_by_peer(busy):
+                    busy = None                  # its thread has not seen the end yet: it is gone
                 if busy is None:
                     self._driver = conn
             if busy is not None:
@@ -148,7 +161,8 @@ class ClockLinkServer:
                 line = reader.readline(_MAX_LINE)
                 if not line:
                     return                                   # the driver went away; another may come
-                reply = self.handle(line.decode("ascii", "replace").strip())
+                with self._handling:         # a driver taking over waits for its predecessor's last instant
+                    reply = self.handle(line.decode("ascii", "replace").strip())
                 conn.sendall(reply.encode("ascii") + b"\n")
         except OSError as exc:
             log.info("clock link from %s:%s ended: %s", peer[0], peer[1], exc)
