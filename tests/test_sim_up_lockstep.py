@@ -173,3 +173,40 @@ def test_link_down_names_the_endpoint_when_the_simulator_process_is_gone(served_
         free = s.getsockname()[1]
     with pytest.raises(LinkDown, match=f"127.0.0.1:{free}: cannot connect"):
         attach(f"127.0.0.1:{free}", None)
+
+
+def test_engine_killed_at_a_hold_then_resumed_on_the_same_sim_process(tmp_path):
+    """The engine's process holds the bench time (``BENCH_SIM_HOLD_FILE``, on the driving side) mid-ramp,
+    is killed -9 there, and ``bench resume`` drives the same ``bench sim up`` on: the simulator kept its
+    physical state, so the chamber and probes continue across the stated outage."""
+    from sqlalchemy import select
+
+    from bench.storage.db import open_database
+    from bench.storage.models import Gap
+    from tests.test_runs_resume import HOLD_T, OUTAGE_S, PARAMS, _assert_continuous, _wait_held_mid_ramp
+    from tests.test_runs_support import cli, last_json
+
+    url = f"sqlite:///{tmp_path / 'k.sqlite'}"
+    hold = tmp_path / "hold"
+    hold.write_text(repr(HOLD_T))
+    with Services(tmp_path) as services:
+        endpoints = tmp_path / "endpoints.json"
+        sim = _sim_up(services, endpoints, "sim.log", seed=1)
+        args = [PY, "-m", "bench.cli", "run", "thermal_ramp", "--gyro", "K1", "--sim-endpoints", str(endpoints),
+                "--speed", "200", "--no-progress", "--db", url]
+        for p in PARAMS:
+            args += ["--param", p]
+        run = services.spawn(args, "run.log", BENCH_SIM_HOLD_FILE=str(hold))
+        services.wait_for(lambda: "run 1" in services.log_of(run).read_text(), "the run to be created", run)
+        db = open_database(url)
+        _wait_held_mid_ramp(db, 1, run, hold, timeout_s=SAFETY_S)
+        services.kill(run)
+        code, out, err = cli(["resume", "1", "--db", url, "--json", "--no-progress", "--outage", str(OUTAGE_S)])
+        doc = last_json(out)
+        assert code == 0 and doc["status"] == "completed", (doc, err[-3000:])
+        assert sim.poll() is None                   # the same simulator process all along
+    with db.session() as s:
+        gaps = [g for g in s.scalars(select(Gap).where(Gap.run_id == 1)) if g.reason == "crash_resume"]
+    assert len(gaps) == 1 and gaps[0].t_to >= HOLD_T
+    _assert_continuous(db, 1, gaps[0])
+    db.dispose()

@@ -455,6 +455,8 @@ def resume_command(
         config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
     elif sim_endpoints or live.get("sim_endpoints"):
         config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"], live.get("sim_pace"))
+        if getattr(clock, "lockstep", False):
+            clock.fixed_outage_s = outage       # the simulator process kept its state: only the outage passes
     else:
         config, clock = _bench_config_from_file(config_path), RealClock()
     try:
