@@ -229,7 +229,11 @@ class ClockLink:
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._sock.settimeout(reply_timeout_s)
         self._reader = self._sock.makefile("rb")
-        self.names: list[str] = self._names()
+        try:
+            self.names: list[str] = self._names()
+        except BaseException:
+            self.close()
+            raise
 
     def close(self) -> None:
         self._broken = self._broken or f"simulated bench clock at {self.address}: link closed by this process"
