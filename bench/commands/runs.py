@@ -262,9 +262,14 @@ def _attach_sim(path: str, speed: str | float | None = None):
 
     if not Path(path).exists():
         fail(f"--sim-endpoints {path}: no such file (start `bench sim up --endpoints-json {path}` first)")
+    try:
+        doc = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"not valid JSON: {exc.msg}", line=exc.lineno, source=path) from None
+    if not (isinstance(doc, dict) and isinstance(doc.get("bench_config"), dict) and isinstance(doc.get("clock"), dict)):
+        raise DataFormatError("not an endpoints file of `bench sim up` (it has no bench_config and clock)",
+                              source=path)
     config, clock_doc = load_bench_file(path)
-    if not clock_doc:
-        raise DataFormatError("not an endpoints file of `bench sim up` (no bench_config and clock)", source=path)
     try:
         return config, bench_clock(clock_doc, speed)
     except (KeyError, ValueError) as exc:
