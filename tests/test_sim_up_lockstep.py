@@ -15,6 +15,7 @@ from bench.clock import LockstepClock, clock_from_json
 from bench.clocklink import LINK_KIND, ClockLinkServer, attach
 from bench.errors import LinkDown, ProtocolError
 from tests.service_support import PY, SAFETY_S, Services
+from tests.test_runs_support import cli, last_json
 
 SHORT = ["start_c=30", "soak_h=0.05", "warmup_min=5", "rate_c_per_min=1", "end_c=22", "final_hold_min=5"]
 
@@ -26,46 +27,33 @@ def _sim_up(services: Services, endpoints: Path, log: str, seed: int = 7) -> sub
     return proc
 
 
-def _bench(services: Services, args: list[str], ok: bool = True) -> subprocess.CompletedProcess:
-    p = subprocess.run([PY, "-m", "bench.cli", *args], cwd=services.tmp, env=services.env, capture_output=True,
-                       text=True, timeout=SAFETY_S)
-    if ok:
-        assert p.returncode == 0, (args, p.stdout[-2000:], p.stderr[-3000:])
-    return p
+def _bench(args: list[str]) -> str:
+    """``bench ARGS`` in this process (the engine's process; the simulators run in ``bench sim up``)."""
+    code, out, err = cli(args)
+    assert code == 0, (args, out[-2000:], err[-3000:])
+    return out
+
+
+def _ramp(args: list[str], url: str) -> tuple[list[str], dict]:
+    """A short thermal ramp on the bench ``args`` name; its measured-data CSV lines and ``runs show``."""
+    for p in SHORT:
+        args += ["--param", p]
+    run = last_json(_bench(["run", "thermal_ramp", "--gyro", "L1", *args, "--json", "--no-progress", "--db", url]))
+    assert run["status"] == "completed", run
+    csv = _bench(["export", str(run["run_id"]), "--format", "csv", "--db", url])
+    return csv.splitlines(), json.loads(_bench(["runs", "show", str(run["run_id"]), "--json", "--db", url]))
 
 
 def _record(services: Services, tmp: Path, name: str, speed: str) -> tuple[list[str], dict]:
-    """One short thermal ramp on a fresh ``bench sim up --seed 7``, driven at ``speed``; its CSV lines."""
+    """The short ramp on a fresh ``bench sim up --seed 7``, driven at ``speed``."""
     endpoints = tmp / f"{name}-endpoints.json"
     sim = _sim_up(services, endpoints, f"{name}-sim.log")
     doc = json.loads(endpoints.read_text())
     assert doc["clock"]["kind"] == LINK_KIND and doc["seed"] == 7
-    url = f"sqlite:///{tmp / (name + '.sqlite')}"
-    args = ["run", "thermal_ramp", "--gyro", "L1", "--sim-endpoints", str(endpoints), "--speed", speed,
-            "--json", "--no-progress", "--db", url]
-    for p in SHORT:
-        args += ["--param", p]
-    run = json.loads(_bench(services, args).stdout.strip().splitlines()[-1])
-    assert run["status"] == "completed", run
+    got = _ramp(["--sim-endpoints", str(endpoints), "--speed", speed], f"sqlite:///{tmp / (name + '.sqlite')}")
     services.stop(sim)
     assert sim.returncode == 0, services.log_of(sim).read_text()[-2000:]
-    out = tmp / f"{name}.csv"
-    _bench(services, ["export", str(run["run_id"]), "--format", "csv", "-o", str(out), "--db", url])
-    show = json.loads(_bench(services, ["runs", "show", str(run["run_id"]), "--json", "--db", url]).stdout)
-    return out.read_text().splitlines(), show
-
-
-def _record_in_process(services: Services, tmp: Path) -> list[str]:
-    """The same run with the simulated bench in the engine's process (``bench run --sim --seed 7``)."""
-    url = f"sqlite:///{tmp / 'inproc.sqlite'}"
-    args = ["run", "thermal_ramp", "--gyro", "L1", "--sim", "--seed", "7", "--speed", "max", "--json",
-            "--no-progress", "--db", url]
-    for p in SHORT:
-        args += ["--param", p]
-    run = json.loads(_bench(services, args).stdout.strip().splitlines()[-1])
-    out = tmp / "inproc.csv"
-    _bench(services, ["export", str(run["run_id"]), "--format", "csv", "-o", str(out), "--db", url])
-    return out.read_text().splitlines()
+    return got
 
 
 def _same(a: list[str], b: list[str]) -> None:
@@ -77,10 +65,11 @@ def test_sim_up_seed_records_the_same_csv_at_x600_and_at_max(tmp_path):
     with Services(tmp_path) as services:
         paced, show = _record(services, tmp_path, "x600", "600")
         fast, _ = _record(services, tmp_path, "max", "max")
-        in_process = _record_in_process(services, tmp_path)
+    # and the same as with the simulated bench in the engine's own process
+    in_process, _ = _ramp(["--sim", "--seed", "7", "--speed", "max"], f"sqlite:///{tmp_path / 'inproc.sqlite'}")
     assert len(paced) > 800
     _same(paced, fast)
-    _same(paced, in_process)          # the process boundary changes nothing either
+    _same(paced, in_process)
     # sampled at the real bench-time rates although the simulators run in another process
     sampling = show["sampling"]
     assert sampling["probes"]["readings"] > 100 and sampling["probes"]["max_interval_s"] <= 2.0
@@ -94,10 +83,10 @@ def test_run_fails_clearly_when_the_sim_process_is_gone(tmp_path):
         endpoints = tmp_path / "endpoints.json"
         sim = _sim_up(services, endpoints, "sim.log")
         services.stop(sim)
-        p = _bench(services, ["run", "thermal_ramp", "--gyro", "L1", "--sim-endpoints", str(endpoints),
-                              "--no-progress", "--db", f"sqlite:///{tmp_path / 'gone.sqlite'}"], ok=False)
-    assert p.returncode != 0
-    assert "simulated bench clock at 127.0.0.1:" in p.stderr and "bench sim up" in p.stderr, p.stderr[-2000:]
+    code, _out, err = cli(["run", "thermal_ramp", "--gyro", "L1", "--sim-endpoints", str(endpoints),
+                           "--no-progress", "--db", f"sqlite:///{tmp_path / 'gone.sqlite'}"])
+    assert code != 0
+    assert "simulated bench clock at 127.0.0.1:" in err and "bench sim up" in err, err[-2000:]
 
 
 # ---- the link on an in-process clock ---------------------------------------------------------------
@@ -184,7 +173,6 @@ def test_engine_killed_at_a_hold_then_resumed_on_the_same_sim_process(tmp_path):
     from bench.storage.db import open_database
     from bench.storage.models import Gap
     from tests.test_runs_resume import HOLD_T, OUTAGE_S, PARAMS, _assert_continuous, _wait_held_mid_ramp
-    from tests.test_runs_support import cli, last_json
 
     url = f"sqlite:///{tmp_path / 'k.sqlite'}"
     hold = tmp_path / "hold"
