@@ -4,8 +4,8 @@ Time is "bench seconds" on a Unix-like axis (float seconds).  Three implementati
 
 - ``RealClock``: wall time.  Production with real hardware.
 - ``AcceleratedClock(speed)``: bench time runs ``speed`` times faster than the wall.  It is fully
-  described by ``(speed, wall_epoch, bench_epoch)`` so two processes (``bench sim up`` and
-  ``bench run``) that share those three numbers agree on the time without talking.
+  described by ``(speed, wall_epoch, bench_epoch)`` so two processes (a free-running simulator and
+  its driver) that share those three numbers agree on the time without talking.
 - ``SteppedClock``: time only moves when someone calls ``advance`` or ``sleep``; deterministic tests.
 - ``LockstepClock(pace)``: the simulated bench's clock.  Bench time moves only when the run's
   scheduler sleeps, and each new instant is first *served* by every simulator registered with
