@@ -72,6 +72,10 @@ def test_run_page_shows_each_gyro_state_and_plot(service):
             for slot in ("g1", "g2", "g3"):
                 assert set(page.get_attribute(f"#plot-unit-probes-{slot}", "data-series").split(",")) >= {
                     "gyro sensor", "t1", "t2", "t3", "t4"}
+            # the fit step fitted each gyro's own run: one row per gyro
+            page.wait_for_selector("#run-fits tr[data-slot='g3']")
+            fit_rows = [page.text_content(f"#run-fits tr[data-slot='{slot}'] td:nth-child(2)") for slot in ("g1", "g2", "g3")]
+            assert fit_rows == ["g1 (MG-A)", "g2 (MG-B)", "g3 (MG-C)"]
             shot(page, "multigyro-run-completed")
             assert errors == []
         except BaseException:

@@ -223,13 +223,19 @@ function paramTable(params) {
 }
 
 function fitsTable(fits) {
-  const rows = Object.entries(fits).map(([stepIndex, f]) => el("tr", { dataset: { step: stepIndex } },
-    el("td.num", String(Number(stepIndex) + 1)), el("td", statusBadge(f.status)),
+  // a multi-gyro run's fit step fits every gyro's run: one row per gyro (its slot and ID)
+  const entries = Object.entries(fits).flatMap(([stepIndex, f]) => (f.units
+    ? Object.entries(f.units).map(([slot, u]) => ({ stepIndex, f: u, slot, gyro: u.gyro_id }))
+    : [{ stepIndex, f }]));
+  const perGyro = entries.some((e) => e.slot);
+  const rows = entries.map(({ stepIndex, f, slot, gyro }) => el("tr", { dataset: slot ? { step: stepIndex, slot } : { step: stepIndex } },
+    el("td.num", String(Number(stepIndex) + 1)), perGyro ? el("td", slot ? `${slot}${gyro ? ` (${gyro})` : ""}` : "–") : null,
+    el("td", statusBadge(f.status)),
     el("td", Object.entries(f.versions || {}).map(([m, v]) => `${m} v${v}`).join(", ") || "–"),
     el("td.wrap", (f.fitted || []).join(", ") || "–"), el("td", f.accepted ? "yes" : "no"),
     el("td.wrap", f.reason || f.error || Object.entries(f.errors || {}).map(([k, v]) => `${k}: ${v}`).join("; ") || "")));
-  return el("table#run-fits", el("thead", el("tr", ["Step", "Status", "Versions", "Fitted", "Accepted", "Notes"]
-    .map((h) => el("th", h)))), el("tbody", rows));
+  const heads = ["Step", ...(perGyro ? ["Gyro"] : []), "Status", "Versions", "Fitted", "Accepted", "Notes"];
+  return el("table#run-fits", el("thead", el("tr", heads.map((h) => el("th", h)))), el("tbody", rows));
 }
 
 function renderSteps(run) {
