@@ -108,7 +108,8 @@ def demo_command(
                    f"database {db_url})")
         http = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=30.0)
         train_id = _run(http, "thermal_ramp", TRAIN, "modelling run: +50 -> -30 C at 1 C/min", deadline)
-        # the coefficients served by gyro ID now are the modelling run's (the held-out run fits nothing)
+        # the coefficients served by gyro ID now are the modelling run's: fetched before the held-out run
+        # records (thermal_ramp's own Fit step stores a newer version when that run completes)
         coeff = _ok(http.get(f"/gyros/{GYRO_ID}/coefficients", params={"model": "dynamic"}))
         typer.echo(f"\nGET {base}/gyros/{GYRO_ID}/coefficients?model=dynamic  (fitted on run {train_id})")
         for model in coeff.get("models", [coeff]):
