@@ -310,13 +310,19 @@ class _Projector:
         if not np.all(np.isfinite(Zo)):
             return None
         Zr = Zo - self.q @ (self.q.T @ Zo)
-        norms = np.sqrt(np.sum(Zr ** 2, axis=0))
-        keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.sum(Zo ** 2))))
+        norms = np.sqrt(np.einsum("ij,ij->j", Zr, Zr))
+        keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.einsum("ij,ij->", Zo, Zo))))
         if not keep.any():
             return float(self.yr @ self.yr)
-        b, *_ = np.linalg.lstsq(Zr[:, keep] / norms[keep], self.yr, rcond=1e-10)
-        r = self.yr - (Zr[:, keep] / norms[keep]) @ b
-        return float(r @ r)
+        W = Zr[:, keep] / norms[keep]
+        # the few added columns: their own small Gram matrix (eigen-decomposed, rank-revealing like
+        # the pseudo-inverse) instead of a general least-squares call per candidate
+        g = W.T @ W
+        c = W.T @ self.yr
+        lam, v = np.linalg.eigh(g)
+        good = lam > lam[-1] * 1e-10
+        proj = v[:, good].T @ c
+        return max(float(self.yr @ self.yr - np.sum(proj ** 2 / lam[good])), 0.0)
 
 
 def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
