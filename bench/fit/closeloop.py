@@ -34,7 +34,7 @@ import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
-from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
+from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, coefficient_spread, fit_noise_model
@@ -338,6 +338,7 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) ->
     in-range validation std100 after adding the effects up to it (in the order chosen)."""
     out = []
     step_ev = {lab: s["evidence"] for s in steps if "evidence" in s for lab in s["after_joint_refit"]}
+    step_ev.update({fam: s["evidence"] for s in steps if "evidence" in s for fam in s.get("added_families", [])})
     beta = fit(kept)[0]
     offset = problem.Xb.shape[1]
     for i, e in enumerate(kept):
@@ -345,16 +346,19 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) ->
         base = problem.score(others, with_cv=True)
         ev = gates(problem, base, problem.score(others + (e,), with_cv=True), (e,))
         ev.pop("passed", None)
-        first = step_ev.get(e.label, {})
+        first = step_ev.get(e.family.label) or step_ev.get(e.label, {})
         if first.get("runner_up") is not None:
             ev["runner_up"] = first["runner_up"]
             ev["bic_margin_to_runner_up"] = first.get("bic_margin_to_runner_up")
+        # candidates the training run could not tell from this one: named, never settled by validation
+        ambiguous = first.get("ambiguous_with", [])
         cols = list(e.columns(problem.fine).keys())
         start = offset + sum(len(k.columns(problem.fine)) for k in kept[:i])
         val_upto = std100(np.where(in_range, fit(kept[: i + 1])[2], np.nan), t_va)
         out.append({"kind": e.kind, "params": e.params, "terms": cols,
                     "coefficients": {nm: float(beta[start + j]) for j, nm in enumerate(cols)},
-                    "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised"})
+                    "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised",
+                    "ambiguous_with": ambiguous})
     return out
 
 
@@ -397,11 +401,13 @@ def _findings(r: dict[str, Any]) -> str:
                      + _cv_text(ev)
                      + "; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
-        runner = ev.get("runner_up")
-        if runner and ev.get("bic_margin_to_runner_up") is not None and ev["bic_margin_to_runner_up"] < 6.0:
-            lines.append(f"   {runner['kind']} ({', '.join(f'{k}={v}' for k, v in runner['params'].items())}) "
-                         "explains this residual almost as well: this data cannot tell the two apart; a run "
-                         "with a different ramp pattern would.")
+        if e.get("ambiguous_with"):
+            alts = "; ".join(f"{a['kind']} ({', '.join(f'{k}={v}' for k, v in a['params'].items())}, delta-BIC "
+                             f"{a['bic_margin']:.1f} behind)" for a in e["ambiguous_with"])
+            lines.append(f"   Ambiguous on the training run: {alts} explains this residual almost as well "
+                         f"(less than {AMBIGUOUS_DBIC:.0f} in BIC): this data cannot tell them apart; the "
+                         "validation run only confirms the choice, it does not make it; a run with a "
+                         "different ramp pattern would decide.")
     for e in r["effects_not_generalised"]:
         params = ", ".join(f"{k}={v}" for k, v in e["params"].items())
         if not np.isfinite(e["validation_std100_with_dph"]):
@@ -514,6 +520,7 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
     report: dict[str, Any] = {"model": model, "latitude_deg": latitude_deg, "block_s": BLOCK_S,
                               "thresholds": {"hac_p_max": P_MAX, "delta_bic_min": DBIC_MIN,
                                              "min_cv_gain": MIN_CV_GAIN, "max_effects": MAX_EFFECTS,
+                                             "ambiguous_delta_bic": AMBIGUOUS_DBIC,
                                              "at_floor_ratio": AT_FLOOR_RATIO},
                               "channels": {}}
     for ch in channels:
