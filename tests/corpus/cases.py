@@ -71,11 +71,22 @@ class Case:
     full: dict[str, tuple[Dataset, Recording]]   # per run: the 1-s data and how the logger recorded it
 
     def oracle_columns(self, channel: str, which: str) -> np.ndarray:
-        """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data: computed
-        from the 1-s data (what the probes read at the physics' rate) and recorded as the gyro is
-        (averaged over each logger period, outages left out)."""
+        """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data, from what
+        the logger recorded: its probe readings interpolated onto the physics' 1-s grid (straight
+        through an outage: what happened there is not recorded) and its power readings held, the
+        effect computed there and recorded
+        as the gyro is (averaged over each logger period, outages left out)."""
         hidden = self.hidden_train if which == "train" else self.hidden_validate
-        ds, rec = self.full[which]
+        full, rec = self.full[which]
+        recorded = self.train if which == "train" else self.validate
+        ds = full
+        if not rec.identity:
+            cols = {p: np.interp(full.time, recorded.time, np.asarray(recorded[p], dtype=float))
+                    for p in full.columns if p.startswith("temp_")}
+            # the power switch as recorded: each reading holds until the next one
+            last = np.clip(np.searchsorted(recorded.time, full.time, side="right") - 1, 0, len(recorded) - 1)
+            cols["power"] = np.asarray(recorded["power"], dtype=float)[last]
+            ds = full.with_columns(**cols)
         cols = [e.oracle(ds, hidden, channel) for e in self.truth[channel].effects]
         if not cols:
             return np.zeros((rec.n_rows, 0))

@@ -28,6 +28,7 @@ from tests.corpus.generator import declared_columns
 from tests.corpus.physics import earth_rate_body
 
 ORACLE_TOLERANCE = 1.15
+LOST_INFORMATION_FLOORS = 1.5       # oracle above this many noise floors: "partly_explained" is honest too
 NOT_WORSE_TOLERANCE = 1e-6          # relative; rounding between the product's before and ours
 BLOCK_S = 100.0
 
@@ -176,8 +177,13 @@ def score_channel(case: Case, channel: str, channel_report: dict[str, Any]) -> C
     if explainable and not kinds_match(got, truth):
         reasons.append("kinds: got " + _fmt(got) + ", want " + _fmt(want))
     verdict = channel_report.get("verdict")
-    if verdict not in truth.verdicts:
-        reasons.append(f"verdict: got {verdict}, want {'|'.join(sorted(truth.verdicts))}")
+    honest = set(truth.verdicts)
+    if "explained" in honest and ref.oracle_in > LOST_INFORMATION_FLOORS * case.floors[channel]:
+        # the true effects in their true form, from the recorded data, stay well above the noise floor
+        # (e.g. a power-on inside a logger outage): structure is left that no analysis can remove
+        honest.add("partly_explained")
+    if verdict not in honest:
+        reasons.append(f"verdict: got {verdict}, want {'|'.join(sorted(honest))}")
     resid = product_validation_residual(channel_report, len(case.validate))
     if resid is not None:
         after_in = std100(resid, case.validate.time, ref.keep)
