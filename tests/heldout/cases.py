@@ -31,7 +31,7 @@ PARTLY = "partly_explained"
 NONE_MISSING = "no_effect_missing"
 UNEXPLAINED = "unexplained_structure_remains"
 
-PRE_HISTORY_C, PRE_HISTORY_N = 22.0, 400
+PRE_HISTORY_C, PRE_HISTORY_N = 15.0, 400
 LIBRARY_KINDS = ("thermal_lag", "gradient", "rate", "hysteresis", "gradual_hysteresis", "warmup")
 FOREIGN_KINDS = ("sinusoid", "bias_step")
 
@@ -200,10 +200,15 @@ def regressor(e: Effect, t: np.ndarray, truth: dict[str, np.ndarray], dt: float,
     if e.kind == "rate":
         return ph.derivative_per_min(truth[e.probes[0]], dt)
     if e.kind in ("hysteresis", "gradual_hysteresis"):
-        # the memory's state at power-on comes from the unit's history: brought from the lab's 22 C
-        # to the start temperature before the run (unknowable to the analysis, as in a real lab)
+        # the memory's state at power-on comes from the unit's history: the lab brings it to the start
+        # temperature from the side opposite to the run's first ramp (a heat/cool balanced
+        # pre-conditioning, 3 widths and at least 15 C away), so the state at the start is the one the
+        # first ramp reverses, which the data themselves tell
         x = truth[e.probes[0]]
-        pre = np.linspace(PRE_HISTORY_C, x[0], PRE_HISTORY_N)
+        w = e.params["width_c"]
+        moved = np.flatnonzero(np.abs(x - x[0]) >= w)
+        first = np.sign(x[moved[0]] - x[0]) if moved.size else 1.0
+        pre = np.linspace(x[0] + first * max(PRE_HISTORY_C, 3 * w), x[0], PRE_HISTORY_N)
         memory = ph.relay if e.kind == "hysteresis" else ph.duhem
         return memory(np.concatenate([pre, x]), e.params["width_c"])[PRE_HISTORY_N:]
     if e.kind == "warmup":
