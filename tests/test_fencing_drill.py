@@ -140,3 +140,32 @@ def _run(db, run_id):
         run = queries.get_run(s, run_id)
         s.expunge(run)
         return run
+
+
+def test_a_run_left_suspended_before_its_first_checkpoint_is_started_again_by_the_next_worker(db):
+    """A worker died (or froze) after its run was suspended from the first chamber reading, before any
+    checkpoint: the worker taking the run over starts it from the beginning (it used to fail it: 'only
+    a queued run can start')."""
+    import datetime as dt
+
+    from bench.storage.models import utcnow
+
+    name = unique_bench()
+    register_bench(db, name)
+    with db.session() as s:
+        run = queries.create_run(s, procedure="thermal_ramp", parameters=SHORT_RAMP, gyro_id="RLG-S", bench_name=name)
+        run_id = run.id
+        queries.stamp_run_status(run, "running", utcnow())
+        queries.stamp_run_status(run, "suspended", utcnow())
+        run.worker, run.heartbeat_at = "gone@elsewhere", utcnow() - dt.timedelta(hours=1)
+    w, thread = start_worker(db, name, DoublesBench.lockstep())
+    try:
+        done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, SAFETY_S,
+                        "the run to end under the new worker")
+    finally:
+        w.stop()
+        thread.join(30)
+    assert done.status == "completed" and done.error is None and done.worker == w.worker_id
+    with db.session() as s:
+        kinds = [e.kind for e in s.scalars(select(Event).where(Event.run_id == run_id))]
+    assert "worker_takeover" in kinds and "run_started" in kinds and "run_failed" not in kinds
