@@ -4,15 +4,17 @@ Time is "bench seconds" on a Unix-like axis (float seconds).  Three implementati
 
 - ``RealClock``: wall time.  Production with real hardware.
 - ``AcceleratedClock(speed)``: bench time runs ``speed`` times faster than the wall.  It is fully
-  described by ``(speed, wall_epoch, bench_epoch)`` so two processes (``bench sim up`` and
-  ``bench run``) that share those three numbers agree on the time without talking.
+  described by ``(speed, wall_epoch, bench_epoch)`` so two processes (a free-running simulator and
+  its driver) that share those three numbers agree on the time without talking.
 - ``SteppedClock``: time only moves when someone calls ``advance`` or ``sleep``; deterministic tests.
 - ``LockstepClock(pace)``: the simulated bench's clock.  Bench time moves only when the run's
   scheduler sleeps, and each new instant is first *served* by every simulator registered with
   ``serve(name, fn)`` (w1 files rewritten, gyro frames up to that instant written on the line) and
   then *received* by every driver registered with ``receive(name, fn)`` (the gyro link has read those
   bytes) before ``sleep`` returns.  ``pace`` is a limit: never faster than ``pace`` x wall; ``None``
-  runs as fast as the host can.  A busy host only slows the run; the data do not change.
+  runs as fast as the host can.  A busy host only slows the run; the data do not change.  Across
+  processes (``bench sim up``) the simulators' lockstep clock is driven from the engine's process over
+  a clock endpoint (``bench.clocklink``; ``clock_from_json`` of kind ``lockstep_link``).
 
 Network I/O (socket timeouts) is always in wall seconds; only waiting *for the bench* (soaks, record
 durations, settle times) uses the clock.
@@ -179,6 +181,11 @@ class LockstepClock:
         with self._lock:
             self._receivers[name] = fn
 
+    def participants(self) -> list[str]:
+        """Names of the participants that serve each instant, in serving order."""
+        with self._lock:
+            return list(self._servers)
+
     def forget(self, name: str) -> None:
         with self._lock:
             self._servers.pop(name, None)
@@ -317,6 +324,10 @@ def clock_from_json(data: dict[str, Any]) -> Clock:
         return SteppedClock(float(data["now"]))
     if kind == "lockstep":
         return LockstepClock(float(data["now"]), data.get("pace"), hold_file=data.get("hold_file"))
+    if kind == "lockstep_link":      # a simulated bench in another process, driven from this one
+        from bench.clocklink import clock_from_link_json
+
+        return clock_from_link_json(data)
     raise ValueError(f"unknown clock kind {kind!r} in clock description {data!r}")
 
 

@@ -53,8 +53,8 @@ class Dashboard:
 
 @contextlib.contextmanager
 def dashboard_service(tmp: Path, database_url: str | None = None, hold_at: float | None = None,
-                      speed: str = "max") -> Iterator[Dashboard]:
-    """``bench serve --speed SPEED --seed 0`` on ``database_url`` (default: an SQLite file in ``tmp``);
+                      speed: str = "max", serve_args: tuple[str, ...] = ()) -> Iterator[Dashboard]:
+    """``bench serve --speed SPEED --seed 0 [SERVE_ARGS]`` on ``database_url`` (default: an SQLite file in ``tmp``);
     with ``hold_at`` its bench time stops at that instant until ``Dashboard.hold_at``/``release``
     moves or lifts the hold.  What a held run shows: its stored progress (``progress_percent``) as of
     its last checkpoint, taken on the bench-time schedule; its live document (elapsed, remaining) as of
@@ -66,7 +66,7 @@ def dashboard_service(tmp: Path, database_url: str | None = None, hold_at: float
         hold.write_text(repr(hold_at))
     with Services(tmp, BENCH_DATABASE_URL=database_url, BENCH_SIM_HOLD_FILE=str(hold),
                   BENCH_TOKENS=",".join(f"{role}:{tok}" for role, tok in TOKENS.items())) as services:
-        proc, base = services.serve("--speed", speed, "--seed", "0", token=TOKENS["viewer"])
+        proc, base = services.serve("--speed", speed, "--seed", "0", *serve_args, token=TOKENS["viewer"])
         try:
             yield Dashboard(base, hold, services, proc)
         finally:

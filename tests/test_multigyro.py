@@ -322,3 +322,178 @@ def test_a_slot_mounted_turned_sees_its_own_positions():
     flip = {"E": "W", "W": "E", "N": "S", "S": "N", "U": "D", "D": "U"}
     turned = [slot_position(p, geo, geo.model_copy(update={"mounting": "WSU"})) for p in EIGHT_POSITIONS]
     assert turned == [flip[p[0]] + flip[p[1]] + p[2] for p in EIGHT_POSITIONS]
+
+
+# ---- a unit's own supply unreachable: that unit's fault, not the whole power step ------------------------
+def _plan_run(db, bench, clock, cfg, ec, plan, gyro_ids=("P-1", "P-2", "P-3")):
+    """Run ``plan`` on the simulated fixture; returns (run id, status, bench time at the start)."""
+    run_id = new_run(db, procedure=plan.name, parameters={}, config_snapshot=cfg.model_dump(mode="json"),
+                     gyro_id=None, bench_name=cfg.name, units=cfg.assign_gyros(list(gyro_ids)))
+    store = SqlRunStore(db, geometry=cfg.turntable.geometry)
+    devices = build_devices(cfg, clock)
+    engine = Engine(devices, store, clock, cfg, engine_config=ec)
+    t0 = clock.now()
+    try:
+        status = engine.run(str(run_id), plan)
+    finally:
+        store.close(run_id)
+        close_devices(devices)
+    return run_id, status, t0
+
+
+def _power_plan():
+    from bench.engine.steps import GyroPower, Plan, Record
+
+    return Plan(name="power", steps=[GyroPower(on=True), Record(duration_s=120.0, labels={"p": 1})])
+
+
+def _events(db, run_id):
+    with db.session() as s:
+        return [(e.kind, e.message) for e in queries.list_events(s, run_id)]
+
+
+def test_own_supply_unreachable_marks_only_its_unit_under_continue(tmp_path):
+    """g2's own supply refuses connections from the start to bench time +60 s: the power step goes on
+    for g1 and g3; g2 is marked faulted, its power is sent again once its supply answers, its outage
+    is a gap of its run, and every unit's run completes."""
+    db = open_database(f"sqlite:///{tmp_path / 'psu.sqlite'}")
+    clock = lockstep_clock(None, 21)
+    bench = MultiGyroBench(units=3, clock=clock, seed=21, own_supplies=["g2"]).start()
+    try:
+        cfg = bench.bench_config()
+        assert cfg.slot("g2").power.psu.url == bench.own_psus["g2"].url and cfg.slot("g3").power.channel == 2
+        t0 = clock.now()
+        bench.drop_supply("g2", t0, t0 + 60.0)
+        run_id, status, t_start = _plan_run(db, bench, clock, cfg, engine_config_for(clock), _power_plan())
+        g2_on_at_end = bench.unit("g2").psu_model.output_on
+        commands = [e.request.upper() for e in bench.own_psus["g2"].received.entries()]
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed"
+        report = run_report(db, run_id)
+        assert report["suspensions"] == [] and report["status"] == "completed", report
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed"] * 3
+        assert units["g1"]["gaps"] == units["g3"]["gaps"] == []
+        (gap,) = units["g2"]["gaps"]
+        # from the start to g2's first frame after the supply reading (every 10 s) that found it listening
+        # again at +60 s (power sent again then)
+        assert gap["t_from"] == pytest.approx(t_start, abs=2.0) and t_start + 60.0 <= gap["t_to"] <= t_start + 62.0
+        assert gap["reason"] == "link"          # the kind of outage (a link of the unit's)
+        kinds = [k for k, _ in _events(db, run_id)]
+        assert kinds.count("unit_fault") == 1 and kinds.count("unit_recovered") == 1
+        assert kinds.count("unit_power_restored") == 1 and "unit_power_failed" in kinds
+        assert not any(k in ("run_failed", "step_failed") for k in kinds)
+        assert not g2_on_at_end                  # the safe state reached it too
+        # its settings and the commanded output sent again once it answered, then off in the safe state
+        assert [c for c in commands if c.startswith("OUTP") and not c.endswith("?")][-2:] == ["OUTP ON", "OUTP OFF"]
+    finally:
+        db.dispose()
+
+
+def test_own_supply_lost_for_good_fails_only_its_unit(tmp_path):
+    """g2's own supply stops answering at +20 s and never comes back: g2's run ends failed with its gap
+    to the end, the others complete, and the parent's reason says that g2's supply missed the safe
+    state's power-off."""
+    from bench.engine.steps import GyroPower, Plan, Record
+
+    db = open_database(f"sqlite:///{tmp_path / 'psu-lost.sqlite'}")
+    clock = lockstep_clock(None, 25)
+    bench = MultiGyroBench(units=3, clock=clock, seed=25, own_supplies=["g2"]).start()
+    try:
+        cfg = bench.bench_config()
+        bench.drop_supply("g2", clock.now() + 20.0)
+        plan = Plan(name="power", steps=[GyroPower(on=True), Record(duration_s=60.0, labels={"p": 1})])
+        run_id, status, t_start = _plan_run(db, bench, clock, cfg, engine_config_for(clock), plan)
+        g2_still_on = bench.unit("g2").psu_model.output_on
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed" and g2_still_on          # nobody could switch it off
+        report = run_report(db, run_id)
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed", "failed", "completed"]
+        (gap,) = units["g2"]["gaps"]
+        assert t_start + 20.0 <= gap["t_from"] <= t_start + 31.0 and gap["frames_missing"] > 0
+        assert "1 of 3 gyro units failed: g2: power supply link down" in report["status_reason"]
+        assert "g2: its supply did not take the last command (output off)" in report["status_reason"]
+    finally:
+        db.dispose()
+
+
+def test_own_supply_unreachable_suspends_the_run_under_suspend(tmp_path):
+    db = open_database(f"sqlite:///{tmp_path / 'psu-suspend.sqlite'}")
+    clock = lockstep_clock(None, 22)
+    bench = MultiGyroBench(units=3, clock=clock, seed=22, own_supplies=["g2"]).start()
+    try:
+        cfg = bench.bench_config().model_copy(update={"unit_faults": "suspend"})
+        ec = engine_config_for(clock).model_copy(update={"settle_s": 20.0})
+        t0 = clock.now()
+        bench.drop_supply("g2", t0, t0 + 60.0)
+        run_id, status, t_start = _plan_run(db, bench, clock, cfg, ec, _power_plan())
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed"
+        report = run_report(db, run_id)
+        (susp,) = report["suspensions"]
+        assert susp["reason"].startswith("g2: power supply link down")
+        assert susp["t_from"] == pytest.approx(t_start, abs=2.0)
+        assert susp["t_to"] == pytest.approx(t_start + 60.0 + 20.0, abs=2.5)      # supply back, then settled
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed"] * 3
+        kinds = [k for k, _ in _events(db, run_id)]
+        assert "unit_fault" not in kinds and kinds.count("unit_power_restored") == 1
+    finally:
+        db.dispose()
+
+
+def test_drop_supply_needs_an_own_supply():
+    bench = MultiGyroBench(units=2, clock=lockstep_clock(None, 23), own_supplies=["g2"])
+    with pytest.raises(ValueError, match="channel 1 of the bench's supply"):
+        bench.drop_supply("g1", 10.0)
+    with pytest.raises(ValueError, match="at least one slot stays"):
+        MultiGyroBench(units=2, clock=lockstep_clock(None, 23), own_supplies=["g1", "g2"])
+    with pytest.raises(ValueError, match="own_supplies: no slot g5"):
+        MultiGyroBench(units=2, clock=lockstep_clock(None, 23), own_supplies=["g5"])
+
+
+# ---- a line's reconnect gap in bench time --------------------------------------------------------------
+@pytest.mark.parametrize("paces", [(None, 300.0)])
+def test_reconnect_gap_is_bench_time_whatever_the_pace(tmp_path, paces):
+    """g2's line drops at +40 s and listens again at +70 s (bench time): the gap its link records is
+    the same at two paces (the receiver retries by bench time), and ends on the first reconnect
+    attempt after +70 s."""
+    from bench.engine.steps import GyroPower, Plan, Record
+
+    plan = Plan(name="line", steps=[GyroPower(on=True), Record(duration_s=120.0, labels={"p": 1})])
+    seen = []
+    for k, pace in enumerate(paces):
+        db = open_database(f"sqlite:///{tmp_path / f'pace{k}.sqlite'}")
+        clock = lockstep_clock(pace, 24)
+        bench = MultiGyroBench(units=3, clock=clock, seed=24).start()
+        try:
+            cfg = bench.bench_config()
+            t0 = clock.now()
+            bench.drop_line("g2", t0 + 40.0, t0 + 70.0)
+            run_id, status, t_start = _plan_run(db, bench, clock, cfg, engine_config_for(clock), plan)
+        finally:
+            bench.stop()
+        try:
+            assert status == "completed"
+            report = run_report(db, run_id)
+            units = {u["slot"]: u for u in report["units"]}
+            (gap,) = units["g2"]["gaps"]
+            assert gap["reason"] == "link" and units["g1"]["gaps"] == units["g3"]["gaps"] == []
+            # every frame the simulator could not deliver is in the gap, none lost beside it
+            undelivered = sum(not f.delivered for f in bench.unit("g2").gyro.sent_frames())
+            assert gap["frames_missing"] == undelivered > 0
+            assert units["g2"]["frames"] + undelivered == units["g1"]["frames"]
+            seen.append((gap["t_from"] - t_start, gap["t_to"] - t_start, gap["frames_missing"]))
+        finally:
+            db.dispose()
+    assert seen[0] == seen[1]
+    t_from, t_to, _ = seen[0]
+    # from g2's last frame before the drop at +40 s to its first after the reconnect at or after +70 s
+    assert 38.0 <= t_from < 40.0 and 70.0 <= t_to <= 72.0

@@ -10,8 +10,9 @@
     ``--sim`` starts a ``SimulatedBench`` in this process at ``--speed`` (bench seconds per wall
     second) and uses its bench config; otherwise the config comes from ``--config PATH`` or
     ``$BENCH_CONFIG`` and time is real, or with ``--sim-endpoints FILE`` from a simulated bench running in
-    another process (``bench sim up --endpoints-json FILE``: its bench config and clock; the simulator
-    then has a CPU core of its own).
+    another process (``bench sim up --endpoints-json FILE``: its bench config, and its lockstep clock driven
+    from here over its clock endpoint at ``--speed``, ``bench.clocklink``; the simulator then has a CPU
+    core of its own).
     Several gyros in one chamber: ``--gyro`` repeated (``--gyro ID`` takes the next free slot of the
     bench config's ``gyros`` list, ``--gyro SLOT=ID`` a given one); with ``--sim`` a ``MultiGyroBench``
     with ``--sim-gyros N`` units (default: one per ``--gyro`` when more than one is named).  The run is
@@ -253,21 +254,26 @@ def _finish(db, run_id: int, status: str, as_json: bool) -> None:
         raise typer.Exit(1)
 
 
-def _attach_sim(path: str):
-    """Bench config and clock of a running ``bench sim up --endpoints-json PATH``."""
-    from bench.clock import clock_from_json
-    from bench.config import BenchConfig
+def _attach_sim(path: str, speed: str | float | None = None):
+    """Bench config and clock of a running ``bench sim up --endpoints-json PATH``: its lockstep bench time is
+    driven from this process at ``speed`` (None: the pace it published; ``bench.clocklink``)."""
+    from bench.commands.service import bench_clock, load_bench_file
     from bench.errors import DataFormatError
 
+    if not Path(path).exists():
+        fail(f"--sim-endpoints {path}: no such file (start `bench sim up --endpoints-json {path}` first)")
     try:
         doc = json.loads(Path(path).read_text())
-        return BenchConfig.model_validate(doc["bench_config"]), clock_from_json(doc["clock"])
-    except FileNotFoundError:
-        fail(f"--sim-endpoints {path}: no such file (start `bench sim up --endpoints-json {path}` first)")
-    except (json.JSONDecodeError, KeyError, ValueError) as exc:
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"not valid JSON: {exc.msg}", line=exc.lineno, source=path) from None
+    if not (isinstance(doc, dict) and isinstance(doc.get("bench_config"), dict) and isinstance(doc.get("clock"), dict)):
+        raise DataFormatError("not an endpoints file of `bench sim up` (it has no bench_config and clock)",
+                              source=path)
+    config, clock_doc = load_bench_file(path)
+    try:
+        return config, bench_clock(clock_doc, speed)
+    except (KeyError, ValueError) as exc:
         raise DataFormatError(f"not an endpoints file of `bench sim up`: {exc}", source=path) from None
-
-
 
 
 def _sim_launch(sim, speed: float | None, scenario: str, chamber_transport: str) -> dict[str, Any]:
@@ -303,8 +309,10 @@ def run_command(
     sim: bool = typer.Option(False, "--sim", help="start a simulated bench in this process"),
     sim_gyros: Optional[int] = typer.Option(None, "--sim-gyros", min=1, max=64, help="simulated bench: this many "
                                             "gyros in one chamber (default: one per --gyro when several)"),
-    speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per "
-                              "wall second, or 'max' (as fast as the host can; the data are the same)"),
+    speed: Optional[str] = typer.Option(None, "--speed", help="simulated bench: at most this many bench seconds "
+                                        "per wall second, or 'max' (as fast as the host can; the data are the "
+                                        "same); default 3600 (--sim) or the pace `bench sim up` published "
+                                        "(--sim-endpoints)"),
     scenario: str = typer.Option("default", "--scenario", help="simulated bench: scenario name or JSON file"),
     seed: Optional[int] = typer.Option(None, "--seed", help="simulated bench: noise seed (default: the "
                                        "scenario's); a seeded bench starts at a fixed bench instant"),
@@ -356,7 +364,12 @@ def run_command(
         bench = _sim_bench(units, clock=lockstep, scenario=scenario, data_rate_hz=data_rate, seed=seed).start()
         config, clock = bench.bench_config(chamber_transport=chamber_transport), bench.clock
     elif sim_endpoints:
-        config, clock = _attach_sim(sim_endpoints)
+        try:
+            parse_speed(speed)
+        except ValueError as exc:
+            fail(str(exc))
+        config, clock = _attach_sim(sim_endpoints, speed)
+        pace = getattr(clock, "pace", None)
     else:
         config, clock = _bench_config_from_file(config_path), RealClock()
     try:
@@ -366,7 +379,8 @@ def run_command(
         db = _open_db(db_url)
         launch = {"launched_by": "bench run", "engine_config": engine_config.model_dump(),
                   "sim": _sim_launch(bench, pace, scenario, chamber_transport) if bench else None,
-                  "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None}
+                  "sim_endpoints": str(Path(sim_endpoints).resolve()) if sim_endpoints else None,
+                  "sim_pace": ("max" if pace is None else pace) if sim_endpoints else None}
         units = _units_for(config, gyro)
         run_id = new_run(db, procedure=module.NAME, parameters=params.model_dump(mode="json"),
                          config_snapshot=config.model_dump(mode="json"), gyro_id=None if units else gyro[0],
@@ -377,7 +391,8 @@ def run_command(
                    f"{summary['total_bench_h']:.2f} h of bench time"
                    + ((f" (simulated bench in lockstep, at most x{pace:g}: at least "
                        f"{summary['total_bench_s'] / pace:.0f} s wall)" if pace else
-                       " (simulated bench in lockstep, as fast as the host can)") if bench else ""), err=True)
+                       " (simulated bench in lockstep, as fast as the host can)")
+                      if bench or getattr(clock, "lockstep", False) else ""), err=True)
         status = _execute(db, run_id, config, clock, engine_config, plan=plan, show_progress=not no_progress,
                           label=f"run {run_id} {module.NAME}", bench_state=bench)
         _finish(db, run_id, status, as_json)
@@ -444,7 +459,9 @@ def resume_command(
                                initial_air_c=float(pv) if pv is not None else 23.0).start()
         config = bench.bench_config(chamber_transport=sim_info.get("chamber_transport", "modbus_tcp"))
     elif sim_endpoints or live.get("sim_endpoints"):
-        config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"])
+        config, clock = _attach_sim(sim_endpoints or live["sim_endpoints"], live.get("sim_pace"))
+        if getattr(clock, "lockstep", False):
+            clock.fixed_outage_s = outage       # the simulator process kept its state: only the outage passes
     else:
         config, clock = _bench_config_from_file(config_path), RealClock()
     try:

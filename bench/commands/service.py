@@ -53,12 +53,36 @@ def load_bench_file(path: str):
     return BenchConfig.load(p), None
 
 
-def _clock(clock_doc: dict[str, Any] | None, speed: float | None):
-    from bench.clock import clock_from_json, make_clock
+def _check_optional_speed(value: str | None) -> str | None:
+    from bench.clock import parse_speed
 
+    if value is not None:
+        try:
+            parse_speed(value)
+        except ValueError as exc:
+            raise typer.BadParameter(str(exc)) from None
+    return value
+
+
+def bench_clock(clock_doc: dict[str, Any] | None, speed: str | float | None):
+    """The clock of a bench file: a simulated bench in another process is driven from here over its clock
+    endpoint (``bench.clocklink``) at ``speed`` (a number or 'max'; None: the pace its ``bench sim up``
+    published), holding at ``BENCH_SIM_HOLD_FILE``'s instants; another clock description is rebuilt as
+    is; without one, ``speed`` makes an accelerated clock (None: real time)."""
+    from bench.clock import clock_from_json, make_clock, parse_speed
+    from bench.clocklink import LINK_KIND
+    from bench.settings import load_settings
+
+    if clock_doc and clock_doc.get("kind") == LINK_KIND:
+        clock_doc = {**clock_doc, "hold_file": load_settings().sim_hold_file or None}
+        if speed is not None:
+            clock_doc["pace"] = parse_speed(speed)
+        return clock_from_json(clock_doc)
     if clock_doc:
         return clock_from_json(clock_doc)
-    return make_clock(speed)
+    if speed is not None and parse_speed(speed) is None:
+        raise ValueError("--speed max: only for a simulated bench in lockstep (an endpoints file of `bench sim up`)")
+    return make_clock(None if speed is None else parse_speed(speed))
 
 
 def write_secret_file(path: Path, text: str) -> Path:
@@ -101,8 +125,11 @@ def _exit_on_sigterm(signum, _frame) -> None:
 def serve_command(
     host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
     port: int = typer.Option(8000, "--port", min=0, max=65535, help="TCP port"),
-    speed: str = typer.Option("3600", "--speed", help="simulated bench: at most this many bench seconds per wall "
-                              "second, or 'max' (as fast as the host can; the data are the same)"),
+    speed: Optional[str] = typer.Option(None, "--speed", callback=_check_optional_speed,
+                                        help="simulated bench (embedded, or another process's endpoints file given "
+                                        "with --config): at most this many bench seconds per wall second, or 'max' "
+                                        "(as fast as the host can; the data are the same); default 3600, or the "
+                                        "pace `bench sim up` published"),
     seed: Optional[int] = typer.Option(None, "--seed", help="simulated bench noise seed (default: the scenario's); "
                                        "a seeded bench starts at a fixed bench instant"),
     config: Optional[list[str]] = typer.Option(None, "--config", help="bench config JSON (repeatable); "
@@ -134,7 +161,8 @@ def serve_command(
         if config:
             for path in config:
                 cfg, clock_doc = load_bench_file(path)
-                workers.append(Worker(db, cfg.name, cfg, None, _clock(clock_doc, None), run_jobs=False))
+                workers.append(Worker(db, cfg.name, cfg, None, bench_clock(clock_doc, speed if clock_doc else None),
+                                      run_jobs=False))
         else:
             from bench.clock import parse_speed
             from bench.settings import load_settings
@@ -194,8 +222,10 @@ def worker_command(
     jobs: bool = typer.Option(True, "--jobs/--no-jobs", help="a bench worker executes analysis jobs between runs"),
     config: Optional[str] = typer.Option(None, "--config", help="bench config JSON or a simulated bench's "
                                          "endpoints file; default: the configuration stored for the bench"),
-    speed: Optional[float] = typer.Option(None, "--speed", min=1.0, help="accelerated clock (when the bench file "
-                                          "carries no clock)"),
+    speed: Optional[str] = typer.Option(None, "--speed", callback=_check_optional_speed,
+                                        help="a simulated bench's endpoints file: at most this many bench seconds "
+                                        "per wall second, or 'max' (default: the pace `bench sim up` published); "
+                                        "a bench file without a clock: an accelerated clock"),
     heartbeat_s: float = typer.Option(1.0, "--heartbeat", min=0.05, help="heartbeat period, wall seconds"),
     stale_after_s: float = typer.Option(15.0, "--stale-after", min=0.2, help="a heartbeat older than this means "
                                         "the worker died (wall seconds)"),
@@ -243,7 +273,11 @@ def worker_command(
             if row is None or not row.config:
                 fail(f"bench {bench!r} has no stored configuration; give --config FILE")
             cfg = BenchConfig.model_validate(row.config)
-    worker = Worker(db, bench, cfg, None, _clock(clock_doc, speed), heartbeat_s=heartbeat_s,
+    try:
+        clock = bench_clock(clock_doc, speed)
+    except ValueError as exc:
+        fail(str(exc))
+    worker = Worker(db, bench, cfg, None, clock, heartbeat_s=heartbeat_s,
                     stale_after_s=stale_after_s, poll_s=poll_s, run_jobs=jobs)
     signal.signal(signal.SIGTERM, lambda *_: worker.stop())
     if metrics_port is not None:

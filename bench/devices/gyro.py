@@ -20,7 +20,9 @@ and counted in ``queue_overflows``.
 Link loss (a read/open exception, EOF on a socket) is recorded: the gap starts at the bench
 time of detection; the thread retries every ``config.reconnect_s`` wall seconds; on success
 ``(gap_from, gap_to)`` is appended to ``stats.link_gaps`` and ``stats.reconnects`` is
-incremented.  The decoder is reset (partial bytes and sequence forgotten) so frames lost in
+incremented.  On a lockstep clock the receiver retries instead, at the first bench instant
+``config.reconnect_s`` bench seconds after the loss or the last attempt, and the gap ends at the
+bench instant the line opened again: the recorded gap does not depend on the pace or the load.  The decoder is reset (partial bytes and sequence forgotten) so frames lost in
 the gap are not miscounted mod 128.  A line that merely goes silent (an unplugged RS-422
 cable, a pty) raises nothing and is not a link gap; the sequence check reports the lost frames
 if fewer than 128.
@@ -86,6 +88,7 @@ class GyroSerialLink(BackgroundLoop):
         self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
         self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
         self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
+        self._next_attempt = 0.0             # lockstep: bench time of the next reconnect attempt
         self._guard: Callable[[], None] | None = None
 
     # ------------------------------------------------------------------ lifecycle
@@ -151,6 +154,9 @@ class GyroSerialLink(BackgroundLoop):
     def _run(self) -> None:
         while not self._stop.is_set():
             port = self._port
+            if port is None and self._lockstep:      # the receiver reconnects, by bench time
+                self._stop.wait(0.05)
+                continue
             if port is None:
                 self._reconnect_loop(self._gap_from if self._gap_from is not None else self.clock.now())
                 self._gap_from = None
@@ -203,6 +209,8 @@ class GyroSerialLink(BackgroundLoop):
     def _receive_instant(self, t: float, reports: dict) -> None:
         """Lockstep receiver: read every byte the simulator wrote up to bench time ``t`` (they are
         already in the socket buffer: the simulator served the instant first), then decode them."""
+        if self._port is None:
+            self._reconnect_at(t)
         sent = reports.get(self.lockstep_name) or {}
         port = self._port
         if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
@@ -212,8 +220,7 @@ class GyroSerialLink(BackgroundLoop):
                     data = port.read(sent["bytes"] - self._rx_bytes)
                 except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
                     self.last_error = f"{type(exc).__name__}: {exc}"
-                    self._gap_from = self.clock.now()
-                    self._close_port()           # the reader thread reconnects
+                    self._lost(t)
                     break
                 if data:
                     self._on_bytes(data)
@@ -229,16 +236,39 @@ class GyroSerialLink(BackgroundLoop):
         if data:
             self._enqueue(self.decoder.feed(data, t, 1.0 / self._rate_hz))
 
+    def _lost(self, t: float) -> None:
+        """Lockstep: the line was lost at bench time ``t``; the receiver reconnects (``_reconnect_at``)."""
+        self._gap_from = t
+        self._next_attempt = t + self.config.reconnect_s
+        self._close_port()
+
+    def _reconnect_at(self, t: float) -> None:
+        """Lockstep: a reconnect attempt when one is due at bench instant ``t``; on success the gap
+        ``(loss, t)`` is recorded (the simulator writes to the new connection from its next instant)."""
+        if t < self._next_attempt or self._stop.is_set():
+            return
+        self._next_attempt = t + self.config.reconnect_s
+        try:
+            port = self._open()
+        except LinkDown as exc:
+            self.last_error = str(exc)
+            return
+        with self._port_lock:
+            self._port = port
+        self.decoder.reset()
+        self.stats.link_gaps.append((self._gap_from if self._gap_from is not None else t, t))
+        self.stats.reconnects += 1
+        self._gap_from = None
+
     def _check_dropped(self, port: serial.SerialBase) -> None:
         """Lockstep: the simulator serves no connection of ours; if it closed ours (a dropped line),
-        close the port so the reader thread reconnects (and records the gap) as on a real line."""
+        close the port so that the receiver reconnects (and records the gap) as on a real line."""
         try:
             port.timeout = 0
             data = port.read(65536)
         except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
             self.last_error = f"{type(exc).__name__}: {exc}"
-            self._gap_from = self.clock.now()
-            self._close_port()
+            self._lost(self.clock.now())
             return
         finally:
             if self._port is port:

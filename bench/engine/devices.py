@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, Iterable, Sequence
 
+from bench.errors import DeviceError
 from bench.interfaces import Chamber, GyroFrame, GyroLink, LinkStats, PowerSupply, ProbeArray, ProbeReading, Turntable
 
 
@@ -76,6 +77,12 @@ class Devices:
         return Devices.fixture(wrap(self.chamber), wrap(self.turntable), units, self.shared)
 
 
+def apply_settings(unit: UnitDevices) -> None:
+    """A unit's own configured voltage and current limit, on its supply."""
+    unit.psu.set_voltage(unit.voltage_v)
+    unit.psu.set_current_limit(unit.current_limit_a)
+
+
 class LinkBank:
     """Every gyro line of a fixture as one ``GyroLink``: started and stopped together; ``drain``
     returns the frames of all lines (slot order); ``stats`` adds the lines' counters up."""
@@ -129,34 +136,52 @@ class ProbeBank:
 class PowerBank:
     """Every unit's power as one ``PowerSupply``: ``output`` switches all of them, ``output_state`` is
     True only when all are on; ``set_voltage`` / ``set_current_limit`` set every unit; ``measure_voltage``
-    is the lowest unit voltage and ``measure_current`` the fixture's total current."""
+    is the lowest unit voltage and ``measure_current`` the fixture's total current.
+
+    Every command reaches every unit even when one unit's supply fails.  With ``unit_failed`` set
+    (the fixture acquisition sets it: a unit's power is that unit's own) a unit's ``DeviceError`` is
+    handed to ``unit_failed(slot, what, error)`` and the bank goes on (``output_state`` then speaks
+    for the units that answered); without it the first error is raised once all units were tried."""
 
     def __init__(self, units: Sequence[UnitDevices]) -> None:
         self.units = tuple(units)
+        self.unit_failed: Callable[[str, str, DeviceError], None] | None = None
+        self.commanded: bool | None = None      # the output state last commanded (None: never)
+
+    def _each(self, what: str, action: Callable[[UnitDevices], Any]) -> list[Any]:
+        """``action`` on every unit; the results of the units that answered."""
+        results, errors = [], []
+        for unit in self.units:
+            try:
+                results.append(action(unit))
+            except DeviceError as exc:
+                if self.unit_failed is None:
+                    errors.append(exc)
+                else:
+                    self.unit_failed(unit.slot, what, exc)
+        if errors:
+            raise errors[0]
+        return results
 
     def identify(self) -> str:
         return "; ".join(f"{u.slot}: {u.psu.identify()}" for u in self.units)
 
     def output(self, on: bool) -> None:
-        for unit in self.units:
-            unit.psu.output(on)
+        self.commanded = on
+        self._each(f"output {'on' if on else 'off'}", lambda unit: unit.psu.output(on))
 
     def output_state(self) -> bool:
-        return all([unit.psu.output_state() for unit in self.units])
+        return all(self._each("output state", lambda unit: unit.psu.output_state()))
 
     def set_voltage(self, volts: float) -> None:
-        for unit in self.units:
-            unit.psu.set_voltage(volts)
+        self._each(f"voltage {volts:g} V", lambda unit: unit.psu.set_voltage(volts))
 
     def set_current_limit(self, amps: float) -> None:
-        for unit in self.units:
-            unit.psu.set_current_limit(amps)
+        self._each(f"current limit {amps:g} A", lambda unit: unit.psu.set_current_limit(amps))
 
     def apply_unit_settings(self) -> None:
         """Each unit's own configured voltage and current limit."""
-        for unit in self.units:
-            unit.psu.set_voltage(unit.voltage_v)
-            unit.psu.set_current_limit(unit.current_limit_a)
+        self._each("voltage and current limit", apply_settings)
 
     def measure_voltage(self) -> float:
         return min(unit.psu.measure_voltage() for unit in self.units)

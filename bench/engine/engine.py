@@ -223,7 +223,7 @@ class Engine:
             except ValueError as exc:
                 raise BenchError(f"run {run_id}: {exc}") from None
             self.acq = self.fixture = FixtureAcquisition(self.devices, self.store, run_id, units, self.config,
-                                                         self.cfg, self.log, now)
+                                                         self.cfg, self.log, now, clock_now=self.clock.now)
         else:
             self.acq = Acquisition(self.devices, self.store, run_id, self.config, self.cfg, self.log, now)
 

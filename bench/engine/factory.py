@@ -9,8 +9,9 @@ stepped test clock keep the defaults: probes every 2 s, chamber status every 5 s
 every 10 s, a 1 s fine tick and 10 s soak tick.  The simulated bench runs on a ``LockstepClock``, where bench
 time only moves when the engine sleeps and every sample is served before it does, so the same rates
 hold at any speed; its loop ticks every 2 s (the probe period) in soaks too.  An ``AcceleratedClock``
-(a simulated bench in another process that shares no lockstep clock) keeps the defaults as well: its
-samples are late when the host is slow, which the run's ``sampling`` summary shows.
+(a free-running simulated bench, as some tests start beside a worker) keeps the defaults as well: its
+samples are late when the host is slow, which the run's ``sampling`` summary shows.  (``bench sim up``
+in another process is in lockstep too: the engine's process drives its clock, ``bench.clocklink``.)
 
 ``make_fit_hook(db, store, latitude_deg=)``: the engine's ``Fit`` step calls it.  It flushes the
 run's writer, builds the run's measured-data ``Dataset`` (``bench.storage.export.run_dataset``: 1-s

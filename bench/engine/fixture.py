@@ -15,6 +15,13 @@ clears (a line fault: once its frames come back, not merely when its power goes 
 still faulted when the run ends, the gap runs to the end and the unit's run ends ``failed``
 ("the run's outcome says so": the parent's final reason lists the failed units).
 
+A unit's power is its own too: a command to its supply that fails (the power step, the unit's
+settings at the start, the safe state: ``PowerBank.unit_failed``) is that unit's "power supply link
+down" condition, under the policy above, instead of failing the whole step.  The unit's supply is
+then due the commanded state: once a reading of it succeeds again, its voltage, current limit and the
+output last commanded are sent again.  A unit whose supply missed a power-on is a line fault (only
+its frames coming back end it).
+
 For steps the fixture reads like one bench (``StepReadings``): probe names are ``<slot>/<probe>``
 of the units not faulted.
 """
@@ -26,10 +33,11 @@ from typing import Any, Callable
 from bench.config import BenchConfig, TurntableGeometry
 from bench.devices.orientation import angles_for, code_at
 from bench.engine.config import EngineConfig
-from bench.engine.devices import Devices
+from bench.engine.devices import Devices, PowerBank, UnitDevices, apply_settings
 from bench.engine.monitor import Acquisition, TelemetrySchedule
 from bench.engine.outcomes import RunOutcome
 from bench.engine.store import RunStore
+from bench.errors import DeviceError
 from bench.interfaces import ChamberStatus
 
 LogFn = Callable[..., None]
@@ -43,6 +51,8 @@ class Unit:
     slot: str
     run_id: str
     acq: Acquisition
+    dev: UnitDevices
+    power_due: bool = False           # its supply missed a command: send the commanded state again
     fault_since: float | None = None
     fault_reason: str | None = None
     link_gaps_at_fault: int = 0
@@ -57,8 +67,10 @@ class Unit:
 
 class FixtureAcquisition:
     def __init__(self, devices: Devices, store: RunStore, run_id: str, unit_runs: dict[str, str],
-                 config: BenchConfig, engine_config: EngineConfig, log: LogFn, now: float) -> None:
+                 config: BenchConfig, engine_config: EngineConfig, log: LogFn, now: float,
+                 clock_now: Callable[[], float] | None = None) -> None:
         self.store = store
+        self.clock_now = clock_now or (lambda: now)
         self.run_id = run_id
         self.config = config
         self.log = log
@@ -79,7 +91,10 @@ class FixtureAcquisition:
             set_format = getattr(store, "set_format", None)
             if set_format is not None:
                 set_format(unit_runs[unit_dev.slot], slot.gyro.frame, slot.gyro.data_rate_hz)
-            self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq))
+            self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq, unit_dev))
+        self.power = devices.psu if isinstance(devices.psu, PowerBank) else None
+        if self.power is not None:
+            self.power.unit_failed = self._power_failed
         self.telemetry = TelemetrySchedule(engine_config, now)
         self.conditions: dict[str, str] = {}
 
@@ -107,6 +122,8 @@ class FixtureAcquisition:
         self.bench.record_telemetry(now, status, table, None)
         for unit in self.units:
             psu = unit.acq.read_psu(now) if table_psu else None
+            if psu is not None and unit.power_due:
+                self._power_again(unit, now)
             if status is not None:
                 unit.acq.status, unit.acq.status_t = status, now
             unit.acq.record_telemetry(now, status, table, psu)
@@ -122,7 +139,7 @@ class FixtureAcquisition:
                 self._mark(unit, now, "; ".join(own.values()))
             elif unit.faulted and not own and (not unit.line_fault or unit.acq.frames_total > unit.frames_at_fault):
                 self._recovered(unit, now)
-            if unit.faulted and any(key in LINE_KEYS for key in own):
+            if unit.faulted and (any(key in LINE_KEYS for key in own) or (unit.power_due and self._powered())):
                 unit.line_fault = True
         self.conditions = conditions
 
@@ -145,6 +162,35 @@ class FixtureAcquisition:
         self.log("info", "unit_recovered", f"gyro unit {unit.slot} back after {now - unit.fault_since:.0f} s",
                  slot=unit.slot, unit_run=unit.run_id)
         unit.fault_since = unit.fault_reason = None
+
+    # ---- a unit's power -------------------------------------------------------------------------
+    def _powered(self) -> bool:
+        return self.power is not None and bool(self.power.commanded)
+
+    def _power_failed(self, slot: str, what: str, error: DeviceError) -> None:
+        """``PowerBank.unit_failed``: a command to the unit's supply failed."""
+        unit, now = self._unit(slot), self.clock_now()
+        unit.power_due = True
+        self.log("warning", "unit_power_failed", f"gyro unit {slot}: power supply {what} failed: {error}",
+                 slot=slot, unit_run=unit.run_id)
+        unit.acq.link_failed("psu", error, now)
+
+    def _power_again(self, unit: Unit, now: float) -> None:
+        """The unit's supply answers again: its settings and the output last commanded, sent again."""
+        assert self.power is not None
+        on = self.power.commanded
+        try:
+            apply_settings(unit.dev)
+            if on is not None:
+                unit.dev.psu.output(on)
+        except DeviceError as exc:
+            unit.acq.link_failed("psu", exc, now)
+            return
+        unit.power_due = False
+        state = "" if on is None else f", output {'on' if on else 'off'}"
+        self.log("info", "unit_power_restored", f"gyro unit {unit.slot}: power supply answers again; "
+                 f"{unit.dev.voltage_v:g} V / {unit.dev.current_limit_a:g} A limit{state} sent again",
+                 slot=unit.slot, unit_run=unit.run_id)
 
     # ---- what steps read (``StepReadings``) ----------------------------------------------------
     @property
@@ -209,8 +255,11 @@ class FixtureAcquisition:
     def finish(self, status: RunOutcome, now: float, reason: str | None) -> str | None:
         """The run ends with ``status``: every unit's run ends too (a unit still faulted: its gap to the
         end recorded, ``failed``).  Returns the run's final reason, naming the failed units."""
-        failed = []
+        failed, unpowered = [], []
         for unit in self.units:
+            if unit.power_due and self.power is not None and self.power.commanded is not None:
+                unpowered.append(f"{unit.slot}: its supply did not take the last command "
+                                 f"(output {'on' if self.power.commanded else 'off'})")
             if unit.faulted:
                 assert unit.fault_since is not None
                 # no next frame will close this gap: its missing frames are the unit's rate over it
@@ -223,10 +272,11 @@ class FixtureAcquisition:
                 failed.append(f"{unit.slot}: {text}")
             else:
                 self.store.set_run_status(unit.run_id, status, now, reason)
-        if not failed:
-            return reason
-        units = f"{len(failed)} of {len(self.units)} gyro units failed: " + "; ".join(failed)
-        return units if reason is None else f"{reason}; {units}"
+        notes = [reason] if reason else []
+        if failed:
+            notes.append(f"{len(failed)} of {len(self.units)} gyro units failed: " + "; ".join(failed))
+        notes += unpowered
+        return "; ".join(notes) if notes else None
 
     # ---- checkpoint ------------------------------------------------------------------------------
     def checkpoint(self) -> dict[str, Any]:

@@ -68,6 +68,11 @@ class Acquisition:
         else:
             self.link_errors[source] = str(error)
 
+    def link_failed(self, source: str, error: DeviceError, now: float) -> None:
+        """A command to ``source`` failed (not one of the reads here): its link is down as after a failed read."""
+        self._link(source, error)
+        self._watch(source, now)
+
     def _watch(self, source: str, now: float) -> None:
         """After a read of ``source``: its suspenders update the conditions."""
         for suspender in self.suspenders[source]:

@@ -129,6 +129,9 @@ class SimulatedBench:
         # up to 72 bench seconds old (a real read triggers a fresh conversion)
         self.w1 = W1TreeSimulator(source, self.clock, self.w1_root, self.serials, min_wall_interval_s=0.005)
         self.started = False
+        # the endpoints file's clock when another process drives this bench's lockstep clock
+        # (``bench.clocklink.ClockLinkServer.to_json``); None: this clock's own description
+        self.clock_endpoint: dict[str, Any] | None = None
 
     # ---------------------------------------------------------------- physics inputs
     def _air_c(self, t: float) -> float:
@@ -244,7 +247,7 @@ class SimulatedBench:
             "probes": dict(self.serials),
             "gyro_frame": "hrg" if self.scenario.gyro_type == "hrg" else "kvh_a",
             "gyro_data_rate_hz": self.data_rate_hz,
-            "clock": self.clock.to_json(),
+            "clock": self.clock_endpoint or self.clock.to_json(),
             "seed": self.seed,
         }
 

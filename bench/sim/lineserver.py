@@ -21,7 +21,8 @@ Fault injection: ``server.faults`` (a ``LineFaults``), changeable at any time fr
   (the reply terminator, if any, is left intact so framing is kept; seeded by ``seed``).
 - ``drop_link(refuse_s=0.0)``: close every client connection now; with ``refuse_s > 0`` the
   listening socket is also closed for that many wall seconds, so reconnects are *refused*, then
-  it listens again on the same port.
+  it listens again on the same port.  ``restore_link()`` listens again at once (before the call
+  returns: a simulator that drops a link by bench time restores it at a bench instant).
 """
 from __future__ import annotations
 
@@ -57,6 +58,12 @@ class LineFaults:
         if self._server is None:
             raise RuntimeError("drop_link: the line server is not attached/started")
         self._server._drop_all_clients(refuse_s)
+
+    def restore_link(self) -> None:
+        """Listen again now (ends a ``drop_link`` refusal early, e.g. ``refuse_s=math.inf``)."""
+        if self._server is None:
+            raise RuntimeError("restore_link: the line server is not attached/started")
+        self._server._listen_again()
 
     def clear(self) -> None:
         """Back to a healthy link (no delay, no drops, no corruption)."""
@@ -197,6 +204,12 @@ class LineServer:
             listener.close()
         for conn in clients:
             _close_quietly(conn)
+
+    def _listen_again(self) -> None:
+        with self._lock:
+            self._refuse_until = 0.0
+            if self._listener is None and self._started and not self._stopping.is_set():
+                self._listener = self._listen()
 
     def _accept_loop(self) -> None:
         while not self._stopping.is_set():

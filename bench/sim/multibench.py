@@ -1,7 +1,8 @@
 """A simulated bench with several gyros in one chamber (``MultiGyroBench``).
 
 One chamber, one turntable and one multi-channel SCPI supply (``MultiChannelPsuSimulator``, channel
-k powers slot k) as on ``SimulatedBench``; per slot a gyro on its own serial endpoint, its own
+k powers the k-th slot on it) as on ``SimulatedBench``; the slots named in ``own_supplies`` are each
+powered by a supply of their own instead (a ``PsuSimulator`` on its own endpoint); per slot a gyro on its own serial endpoint, its own
 DS18B20 tree (its own directory and serials) and its own physics, coupled to the shared chamber air
 and table and to its own supply channel.  Slots are ``g1``, ``g2``... in order.
 
@@ -18,6 +19,11 @@ as on ``SimulatedBench``); each driver's gyro link receives under its slot's nam
 simulator closes the connection and stops listening, as ``GyroFaults.drop_link``), and comes back at
 ``t_to`` (None: for the rest of the session); both happen while the clock serves those instants, so
 the fault lands on the same bench instant at any speed and load.
+
+``drop_supply(slot, t_from, t_to=None)``: the own supply of that slot becomes unreachable at bench
+time ``t_from`` (its connections closed, its port refusing) and listens again at ``t_to``; the
+supply itself (its output, its settings) is unchanged meanwhile, as a supply behind a broken
+serial-to-TCP bridge.  Lockstep only, like ``drop_line``.
 """
 from __future__ import annotations
 
@@ -30,13 +36,13 @@ from typing import Any
 
 import numpy as np
 
-from bench.config import BenchConfig, GyroConfig, GyroSlot, ProbeConfig, SlotPower
+from bench.config import BenchConfig, GyroConfig, GyroSlot, ProbeConfig, PsuConfig, SlotPower
 from bench.devices.orientation import check_geometry
 from bench.sim.bench import SimulatedBench, _BenchInputs, _load_scenario, _RowInputs, device_inputs_row
 from bench.sim.gyro import GyroStreamSimulator
 from bench.sim.lookahead import Lookahead
 from bench.sim.physics import GyroPhysics
-from bench.sim.psu import MultiChannelPsuSimulator, PsuModel
+from bench.sim.psu import MultiChannelPsuSimulator, PsuModel, PsuSimulator
 from bench.sim.scenario import Scenario
 from bench.sim.w1 import W1TreeSimulator
 
@@ -121,7 +127,8 @@ class MultiGyroBench(SimulatedBench):
     def __init__(self, *, units: int, scenario: str | Scenario = "default", seed: int | None = None,
                  latitude_deg: float | None = None, spread: dict[str, float] | None = None,
                  unit_effects: dict[str, dict[str, Any]] | None = None,
-                 mountings: dict[str, str] | None = None, **kwargs: Any) -> None:
+                 mountings: dict[str, str] | None = None, own_supplies: tuple[str, ...] | list[str] = (),
+                 **kwargs: Any) -> None:
         if not isinstance(units, int) or isinstance(units, bool) or not 1 <= units <= 64:
             raise ValueError(f"units must be an integer 1..64, got {units!r}")
         base = scenario if isinstance(scenario, Scenario) else _load_scenario(scenario)
@@ -130,7 +137,11 @@ class MultiGyroBench(SimulatedBench):
         if seed is not None:
             base = base.with_changes(seed=int(seed))
         slots = [slot_name(k) for k in range(units)]
-        for where, given in (("unit_effects", unit_effects or {}), ("mountings", mountings or {})):
+        own_supplies = tuple(own_supplies)
+        if own_supplies and set(own_supplies) >= set(slots):
+            raise ValueError("own_supplies: at least one slot stays on the bench's multi-channel supply")
+        for where, given in (("unit_effects", unit_effects or {}), ("mountings", mountings or {}),
+                             ("own_supplies", dict.fromkeys(own_supplies))):
             unknown = set(given) - set(slots)
             if unknown:
                 raise ValueError(f"{where}: no slot {', '.join(sorted(unknown))} (slots: {', '.join(slots)})")
@@ -171,8 +182,12 @@ class MultiGyroBench(SimulatedBench):
                 GyroStreamSimulator(source, self.clock, self.data_rate_hz, frame, seed=12345 + k),
                 W1TreeSimulator(source, self.clock, root, serials, min_wall_interval_s=0.005),
                 serials, f"gyro:{slots[k]}", f"w1:{slots[k]}", mounting, lookahead))
-        self.psu = MultiChannelPsuSimulator([u.psu_model for u in self.units], self.clock)
+        on_channels = [u for u in self.units if u.slot not in own_supplies]
+        self.psu = MultiChannelPsuSimulator([u.psu_model for u in on_channels], self.clock)
+        self.psu_channels = {u.slot: k + 1 for k, u in enumerate(on_channels)}
+        self.own_psus = {u.slot: PsuSimulator(u.psu_model, self.clock) for u in self.units if u.slot in own_supplies}
         self._drops: dict[str, list[float | None]] = {}
+        self._supply_drops: dict[str, list[float | None]] = {}
 
     # ---------------------------------------------------------------- faults by bench time
     def drop_line(self, slot: str, t_from: float, t_to: float | None = None) -> None:
@@ -180,6 +195,29 @@ class MultiGyroBench(SimulatedBench):
         if t_to is not None and t_to <= t_from:
             raise ValueError(f"drop_line {slot}: t_to {t_to} is not after t_from {t_from}")
         self._drops[unit.slot] = [float(t_from), None if t_to is None else float(t_to)]
+
+    def drop_supply(self, slot: str, t_from: float, t_to: float | None = None) -> None:
+        unit = self.unit(slot)
+        if unit.slot not in self.own_psus:
+            raise ValueError(f"drop_supply {slot}: the slot is powered by channel {self.psu_channels[unit.slot]} of "
+                             f"the bench's supply, not by a supply of its own (own_supplies)")
+        if not self.lockstep:
+            raise ValueError(f"drop_supply {slot}: faults by bench time need the lockstep clock")
+        if t_to is not None and t_to <= t_from:
+            raise ValueError(f"drop_supply {slot}: t_to {t_to} is not after t_from {t_from}")
+        self._supply_drops[unit.slot] = [float(t_from), None if t_to is None else float(t_to)]
+
+    def _serve_supplies(self, t: float) -> dict:
+        """Lockstep: the supply drops due at bench time ``t`` (``drop_supply``), at that instant."""
+        for slot, drop in list(self._supply_drops.items()):
+            t_from, t_to = drop
+            if not math.isnan(t_from) and t >= t_from:
+                self.own_psus[slot].faults.drop_link(refuse_s=math.inf)
+                drop[0] = math.nan
+            if t_to is not None and math.isnan(drop[0]) and t >= t_to:
+                self.own_psus[slot].faults.restore_link()
+                del self._supply_drops[slot]
+        return {}
 
     def unit(self, slot: str) -> SimUnit:
         for unit in self.units:
@@ -208,7 +246,7 @@ class MultiGyroBench(SimulatedBench):
         if self.started:
             return self
         self.chamber.start()
-        for server in (self.turntable, self.psu):
+        for server in (self.turntable, self.psu, *self.own_psus.values()):
             server.start()
         for unit in self.units:
             unit.gyro.start()
@@ -218,14 +256,22 @@ class MultiGyroBench(SimulatedBench):
                 self.clock.serve(unit.serve_name, self._serve_gyro(unit))
             for unit in self.units:
                 self.clock.serve(unit.w1_name, unit.w1.serve)
+            if self.own_psus:
+                self.clock.serve("psu:faults", self._serve_supplies)
         self.started = True
         return self
 
     def stop(self) -> None:
         if self.lockstep:
+            self.clock.forget("psu:faults")
             for unit in self.units:
                 self.clock.forget(unit.w1_name)
                 self.clock.forget(unit.serve_name)
+        for supply in self.own_psus.values():
+            try:
+                supply.stop()
+            except Exception:   # noqa: BLE001 - stopping must reach every server
+                pass
         for unit in self.units[1:]:
             for server in (unit.w1, unit.gyro):
                 try:
@@ -264,7 +310,9 @@ class MultiGyroBench(SimulatedBench):
     def endpoints(self) -> dict[str, Any]:
         doc = super().endpoints
         doc["units"] = {u.slot: {"gyro": u.gyro.url, "w1_root": str(u.w1.root), "probes": dict(u.serials),
-                                 "psu_channel": u.index + 1, "scenario": u.scenario.name, "seed": u.scenario.seed,
+                                 "psu_channel": self.psu_channels.get(u.slot),
+                                 "psu": self.own_psus[u.slot].url if u.slot in self.own_psus else None,
+                                 "scenario": u.scenario.name, "seed": u.scenario.seed,
                                  "mounting": u.mounting}
                         for u in self.units}
         return doc
@@ -277,8 +325,14 @@ class MultiGyroBench(SimulatedBench):
                                                   "channel_probes": u.scenario.channel_probe_map()})
             slots.append(GyroSlot(slot=u.slot, gyro=GyroConfig.model_validate(gyro.model_dump()),
                                   probes=ProbeConfig(w1_root=str(u.w1.root), probes=dict(u.serials)),
-                                  power=SlotPower(channel=u.index + 1), mounting=u.mounting))
+                                  power=self._slot_power(u, single.psu), mounting=u.mounting))
         return BenchConfig.model_validate({**single.model_dump(), "gyros": [s.model_dump() for s in slots]})
+
+    def _slot_power(self, unit: SimUnit, bench_psu: PsuConfig) -> SlotPower:
+        own = self.own_psus.get(unit.slot)
+        if own is None:
+            return SlotPower(channel=self.psu_channels[unit.slot])
+        return SlotPower(psu=bench_psu.model_copy(update={"url": own.url}))
 
     def truth(self) -> dict[str, Any]:
         """Each unit's true coefficients (``Scenario.truth``), by slot."""

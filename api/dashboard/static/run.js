@@ -4,8 +4,10 @@
    decimated with every=N so a long run stays near MAX_POINTS points); events and status changes live
    from the SSE stream GET /runs/{id}/events?follow=true (read with fetch, which can send the token).
    A multi-gyro run (several gyros in one chamber) also lists its gyros (GET /runs/{id} "units": each
-   gyro's own run, state, gaps, latest readings) with a plot of each gyro's 1-s means from that gyro's
-   run (GET /runs/{unit run}/data, refetched at most every UNIT_REFRESH_MS). */
+   gyro's own run, state, gaps, latest readings) with plots of each gyro's 1-s means and of its own
+   probes from that gyro's run (GET /runs/{unit run}/data, refetched at most every UNIT_REFRESH_MS);
+   the parent run stores no frames, so its chamber plot reads the first gyro's run (every gyro's run
+   holds the chamber's readings) and the run-wide probe and gyro plots give way to the per-gyro ones. */
 "use strict";
 
 const RUN_ID = Number(pathParam(2));
@@ -35,6 +37,7 @@ const state = {
   stream: null,
   plots: {},
   unitPlots: {},          // slot -> LinePlot of that gyro's 1-s means
+  unitProbePlots: {},     // slot -> LinePlot of that gyro's probes
   unitsLoadedAt: 0,
 };
 
@@ -94,6 +97,7 @@ function renderUnits(run) {
   const units = run.units || [];
   const card = document.getElementById("units-card");
   card.hidden = units.length === 0;
+  for (const id of ["probes", "gyro"]) document.getElementById(`card-${id}`).hidden = units.length > 0;
   if (!units.length) return;
   const rows = units.map((u) => {
     const m = u.latest && u.latest.gyro && u.latest.gyro.mean_1s;
@@ -116,8 +120,13 @@ function renderUnits(run) {
   for (const u of units) {
     if (state.unitPlots[u.slot]) continue;
     const canvas = el(`canvas#plot-unit-${u.slot}.plot`);
-    plots.append(el("div.card", el("h3", `${u.slot}: gyro ${u.gyro_id}, 1-s means (deg/h)`), canvas));
-    state.unitPlots[u.slot] = new LinePlot(canvas, { xLabel: "bench time since the run's first second (h)", yLabel: "deg/h" });
+    const probes = el(`canvas#plot-unit-probes-${u.slot}.plot`);
+    plots.append(el("div.card", { dataset: { slot: u.slot } },
+      el("h3", `${u.slot}: gyro ${u.gyro_id}, 1-s means (deg/h)`), canvas,
+      el("h3", `${u.slot}: its probes (°C)`), probes));
+    const xLabel = "bench time since the run's first second (h)";
+    state.unitPlots[u.slot] = new LinePlot(canvas, { xLabel, yLabel: "deg/h" });
+    state.unitProbePlots[u.slot] = new LinePlot(probes, { xLabel, yLabel: "°C" });
   }
   if (Date.now() - state.unitsLoadedAt >= UNIT_REFRESH_MS || TERMINAL.includes(run.status)) loadUnitData(run);
 }
@@ -130,13 +139,18 @@ async function loadUnitData(run) {
       const doc = await api(`/runs/${u.run_id}/data?stream=seconds&format=json&every=${every}`);
       const t = doc.columns.bench_time_s || [];
       const t0 = state.t0 !== undefined ? state.t0 : (t.length ? Math.floor(t[0]) : 0);
-      const names = Object.keys(doc.columns).filter((n) => n.startsWith("gyro_")).sort();
-      state.unitPlots[u.slot].setData(t.map((v) => (v - t0) / 3600),
-        names.map((n) => ({ name: n.replace(/^gyro_/, ""), values: doc.columns[n] })));
+      const hours = t.map((v) => (v - t0) / 3600);
+      const pick = (test) => Object.keys(doc.columns).filter(test).sort();
+      state.unitPlots[u.slot].setData(hours,
+        pick((n) => n.startsWith("gyro_")).map((n) => ({ name: n.replace(/^gyro_/, ""), values: doc.columns[n] })));
+      state.unitProbePlots[u.slot].setData(hours, pick((n) => n.startsWith("temp_") && n !== "temp_point_c")
+        .map((n) => ({ name: n === "temp_gyro" ? "gyro sensor" : n.replace(/^temp_/, ""), values: doc.columns[n] })));
     } catch (err) {
       reportError(err, `the data of gyro ${u.gyro_id} (run ${u.run_id})`);
     }
   }
+  // the run's status these plots were loaded for (a finished run's are final)
+  document.getElementById("unit-plots").dataset.loadedFor = run.status;
 }
 
 /* elapsed + remaining, and the plan's estimate when they differ noticeably (holds that waited for
@@ -209,13 +223,19 @@ function paramTable(params) {
 }
 
 function fitsTable(fits) {
-  const rows = Object.entries(fits).map(([stepIndex, f]) => el("tr", { dataset: { step: stepIndex } },
-    el("td.num", String(Number(stepIndex) + 1)), el("td", statusBadge(f.status)),
+  // a multi-gyro run's fit step fits every gyro's run: one row per gyro (its slot and ID)
+  const entries = Object.entries(fits).flatMap(([stepIndex, f]) => (f.units
+    ? Object.entries(f.units).map(([slot, u]) => ({ stepIndex, f: u, slot, gyro: u.gyro_id }))
+    : [{ stepIndex, f }]));
+  const perGyro = entries.some((e) => e.slot);
+  const rows = entries.map(({ stepIndex, f, slot, gyro }) => el("tr", { dataset: slot ? { step: stepIndex, slot } : { step: stepIndex } },
+    el("td.num", String(Number(stepIndex) + 1)), perGyro ? el("td", slot ? `${slot}${gyro ? ` (${gyro})` : ""}` : "–") : null,
+    el("td", statusBadge(f.status)),
     el("td", Object.entries(f.versions || {}).map(([m, v]) => `${m} v${v}`).join(", ") || "–"),
     el("td.wrap", (f.fitted || []).join(", ") || "–"), el("td", f.accepted ? "yes" : "no"),
     el("td.wrap", f.reason || f.error || Object.entries(f.errors || {}).map(([k, v]) => `${k}: ${v}`).join("; ") || "")));
-  return el("table#run-fits", el("thead", el("tr", ["Step", "Status", "Versions", "Fitted", "Accepted", "Notes"]
-    .map((h) => el("th", h)))), el("tbody", rows));
+  const heads = ["Step", ...(perGyro ? ["Gyro"] : []), "Status", "Versions", "Fitted", "Accepted", "Notes"];
+  return el("table#run-fits", el("thead", el("tr", heads.map((h) => el("th", h)))), el("tbody", rows));
 }
 
 function renderSteps(run) {
@@ -294,7 +314,10 @@ async function loadData() {
       state.every = Math.max(1, Math.ceil(state.run.elapsed_bench_s / MAX_POINTS));
     }
     const from = state.lastBenchT === null ? "" : `&t_from=${encodeURIComponent(state.lastBenchT + 0.5)}`;
-    const doc = await api(`/runs/${RUN_ID}/data?stream=seconds&format=json&every=${state.every}${from}`);
+    // a multi-gyro run: its chamber's readings as stored with its first gyro's run (see the top)
+    const units = (state.run && state.run.units) || [];
+    const source = units.length ? units[0].run_id : RUN_ID;
+    const doc = await api(`/runs/${source}/data?stream=seconds&format=json&every=${state.every}${from}`);
     if (appendData(doc.columns) > 0 || !state.drawnOnce) {
       drawPlots();
       state.drawnOnce = true;
@@ -403,7 +426,7 @@ async function control(command) {
 }
 
 function build() {
-  const plotCard = (id, title) => el("div.card", el("h2", title), el(`canvas#plot-${id}.plot`));
+  const plotCard = (id, title) => el(`div.card#card-${id}`, el("h2", title), el(`canvas#plot-${id}.plot`));
   content().replaceChildren(
     el("div.card",
       el("div#summary", el("p.muted", "Loading…")),
