@@ -14,6 +14,7 @@ switches the gyro on (self-heating, warm-up) and off; the DS18B20 tree reads the
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import pickle
@@ -204,10 +205,8 @@ class SimulatedBench:
         """The bench's physical state at the current bench instant (chamber air and controller, table,
         supply, the gyro's thermal network and noise processes, the probes' last conversions, the gyro
         line's frame counter), for a run checkpoint.  ``restore`` puts it back."""
-        with self._lock:
-            if self.lookahead is not None:
-                self.lookahead.settle()          # the physics at the instant, not a block ahead
-            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}
+        with self._lock, (self.lookahead.at_instant() if self.lookahead is not None else contextlib.nullcontext()):
+            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}   # at the instant
             return {"version": SNAPSHOT_VERSION, "t": self.clock.now(), "scenario": self.scenario.name,
                     "seed": self.seed,
                     "state": base64.b64encode(zlib.compress(pickle.dumps(parts, protocol=5))).decode("ascii")}

@@ -27,13 +27,14 @@ a block is used to its end, so a stretch of commands (a table move) costs little
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import pickle
 import random
 import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
@@ -86,7 +87,7 @@ class Lookahead:
     """A ``GyroSource`` / probe source over ``GyroPhysics`` for the lockstep bench (module docstring)."""
 
     MIN_AHEAD_S = 4.0
-    MAX_AHEAD_S = 128.0
+    MAX_AHEAD_S = 512.0
 
     def __init__(self, bench: "SimulatedBench", physics: GyroPhysics, inputs: "_RowInputs") -> None:
         self.bench = bench
@@ -135,9 +136,27 @@ class Lookahead:
 
     # ---- continuity ---------------------------------------------------------------------------
     def settle(self) -> None:
-        """Put the physics back at the last served instant (before a snapshot of the bench)."""
+        """Put the physics back at the last served instant (the block ahead is dropped)."""
         with self._lock:
             self._settle()
+
+    @contextlib.contextmanager
+    def at_instant(self) -> Iterator[None]:
+        """The physics at the last served instant while the block is open (a snapshot of the bench),
+        then back where it was, block and all: a checkpoint every two bench minutes would otherwise
+        drop the block each time and integrate again from the shortest look-ahead."""
+        with self._lock:
+            blk, ph = self._block, self.physics
+            if blk is None or ph._state.t <= self._t:
+                yield
+                return
+            ahead = ph.checkpoint()
+            self._settle()
+            try:
+                yield
+            finally:
+                ph.rollback(ahead)
+                self._block = blk
 
     def reset(self, t: float) -> None:
         """After the physics was restored from a snapshot taken at bench time ``t``."""
