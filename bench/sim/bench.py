@@ -34,7 +34,7 @@ from bench.sim.audit import Received
 from bench.sim.chamber import ChamberSimulator
 from bench.sim.chamber_physics import ChamberModel
 from bench.sim.gyro import GyroStreamSimulator
-from bench.sim.lookahead import Lookahead
+from bench.sim.lookahead import DeviceTrack, Lookahead
 from bench.sim.physics import GyroPhysics, InputBatch, PhysicsInputs
 from bench.sim.psu import PsuModel, PsuSimulator
 from bench.sim.scenario import Scenario
@@ -108,6 +108,8 @@ class SimulatedBench:
         self.psu_model = PsuModel()
         self.psu_model.advance_to(t0)
         self._lock = threading.RLock()
+        # the chamber and table states along the physics' times, shared by every gyro of the bench
+        self.device_track = DeviceTrack()
         if self.lockstep:
             # integrated in blocks ahead of the clock, on exact device states (bench.sim.lookahead)
             inputs = _RowInputs(self)

@@ -103,6 +103,7 @@ class _UnitView:
         self._outer_axis, self._inner_axis, self._mounting = check_geometry(self.geometry)
         self.chamber_model = bench.chamber_model
         self.table_model = bench.table_model
+        self.device_track = bench.device_track
         self.psu_model = psu_model
 
 
