@@ -32,7 +32,7 @@ def test_report_renders_self_contained_with_tables_and_images():
     imgs = re.findall(r'<img [^>]*src="([^"]+)"', page)
     # 2 temperature plots + per (model, dataset) shown: bias, residual vs T, residual vs dT/dt, ADEV
     assert len(imgs) == 2 + 3 * 4
-    assert all(src.startswith("data:image/png;base64,") for src in imgs)
+    assert all(src.startswith("data:image/svg+xml;base64,") for src in imgs)
     assert "http://" not in page and "https://" not in page
     assert "<script" not in page
     # compensation helps on the validation run (metrics table: raw row then compensated row)

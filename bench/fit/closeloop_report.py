@@ -1,5 +1,6 @@
 """Self-contained HTML page of a close-the-loop analysis: residual before/after against time, T and
-dT/dt, Allan deviation before/after, the effects added with their evidence, and the findings."""
+dT/dt (100-s means, before and after in panels on one scale), Allan deviation before/after, the effects
+added with their evidence, and the findings."""
 from __future__ import annotations
 
 import html
@@ -10,20 +11,22 @@ import numpy as np
 from bench.fit import prep
 from bench.fit.base import Dataset
 from bench.fit.closeloop_search import cv_gain_text
-from bench.fit.report import _CSS, html_table, plot_adev, plot_before_after, plot_residuals
+from bench.fit.report import _CSS, html_table, plot_adev, plot_against, plot_before_after
+from bench.signal import run_segments
 
 
 def _section(label: str, data: Dataset, before: np.ndarray, after: np.ndarray, probe: str, window_s: float) -> str:
     t = np.asarray(data.time, float)
+    segments = run_segments(t)
     parts = [f"<h3>{html.escape(label)} run</h3>",
              plot_before_after(t, before, after, f"{label}: residual against time (100-s means)",
-                               labels=("before (declared model)", "after (with effects added)"))]
+                               labels=("before (declared model)", "after (with effects added)"), segments=segments)]
     if f"temp_{probe}" in data:
         temp = np.asarray(data[f"temp_{probe}"], float)
         rate = prep.rate_c_per_min(t, temp, window_s)
-        for name, res in (("before", before), ("after", after)):
-            parts.append(plot_residuals(res, temp, f"temp_{probe} (C)", f"{label}: residual {name} vs T"))
-            parts.append(plot_residuals(res, rate, "dT/dt (C/min)", f"{label}: residual {name} vs dT/dt"))
+        parts.append(plot_against(t, {"before": before, "after": after},
+                                  {f"temp_{probe} (C)": temp, f"dT/dt (C/min, over {window_s:g} s)": rate},
+                                  f"{label}: residual against the model's temperature and its rate", segments=segments))
     step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
     parts.append(plot_adev({"before": before[np.isfinite(before)], "after": after[np.isfinite(after)]},
                            1.0 / step, f"{label}: Allan deviation before / after"))

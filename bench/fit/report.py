@@ -1,12 +1,13 @@
-"""Self-contained HTML report of fitted models (no external resources: plots are base64 PNG made with
-matplotlib's Agg canvas, no CDN, no scripts).
+"""Self-contained HTML report of fitted models (no external resources: plots are SVG drawn by
+``bench.fit.svgplot`` and embedded as base64 ``data:`` images; no CDN, no scripts).
 
 Reusable pieces (the close-the-loop feature uses them): ``plot_temperatures``, ``plot_before_after``,
-``plot_residuals``, ``plot_adev`` return an ``<img>`` HTML snippet; ``html_table`` and
-``coefficient_table`` return escaped ``<table>`` snippets; ``series_metrics`` returns the numbers.
+``plot_against``, ``plot_residuals``, ``plot_adev`` return an ``<img>`` HTML snippet; ``html_table``
+and ``coefficient_table`` return escaped ``<table>`` snippets; ``series_metrics`` returns the numbers.
 
 Plots are drawn for the full width of the page (``_CSS``).  Before and after are drawn as 100-s means
-in two panels sharing one scale, so the one does not hide the other.
+in panels sharing one scale (one above the other against time, side by side against a regressor), so
+the one does not hide the other.
 
 Metrics (calibration-notes lessons 6, 7): RMS, peak-to-peak, bias stability as the std of 100-s means
 (GJB 2426A convention), and the minimum of the overlapping Allan deviation (allantools ``oadev``,
@@ -15,16 +16,13 @@ Metrics (calibration-notes lessons 6, 7): RMS, peak-to-peak, bias stability as t
 """
 from __future__ import annotations
 
-import base64
 import html
-import io
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from bench.fit.base import Dataset, FitResult, format_channel_probes
+from bench.fit.svgplot import COLORS, FLAG_COLOR, Figure, svg_img
 from bench.signal import (
     DEFAULT_RATE_METHOD,
     allan_deviation,
@@ -38,7 +36,6 @@ Prediction = tuple[np.ndarray, np.ndarray]
 PredictFn = Callable[[FitResult, Dataset], Prediction]
 
 MAX_PLOT_POINTS = 4000
-FIGURE_WIDTH_IN = 12.0          # drawn for the full page width (img width 100 %)
 BLOCK_S = 100.0                 # before / after plots show means over this many seconds
 
 
@@ -47,37 +44,34 @@ BLOCK_S = 100.0                 # before / after plots show means over this many
 # --------------------------------------------------------------------------------------------
 
 
-def figure_to_img(fig: Figure, alt: str) -> str:
-    buf = io.BytesIO()
-    FigureCanvasAgg(fig)
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    data = base64.b64encode(buf.getvalue()).decode("ascii")
-    return f'<img alt="{html.escape(alt, quote=True)}" src="data:image/png;base64,{data}">'
-
-
-def _new_figure(title: str, xlabel: str, ylabel: str) -> tuple[Figure, Any]:
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 3.4))
-    ax = fig.add_subplot(1, 1, 1)
-    ax.set_title(title)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    ax.grid(True, alpha=0.3)
-    return fig, ax
-
-
 def _thin(n: int, max_points: int = MAX_PLOT_POINTS) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / max_points))))
 
 
+def _with_gaps(x: np.ndarray, y: np.ndarray, segments: list[slice] | None) -> tuple[np.ndarray, np.ndarray]:
+    """x and y with a NaN between segments, so a line is not drawn across a gap."""
+    if not segments or len(segments) < 2:
+        return x, y
+    xs, ys = [], []
+    for seg in segments:
+        xs += [x[seg], [np.nan]]
+        ys += [y[seg], [np.nan]]
+    return np.concatenate(xs[:-1]), np.concatenate(ys[:-1])
+
+
+def _std(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)]
+    return float(np.std(finite, ddof=1)) if finite.size > 1 else float("nan")
+
+
 def plot_temperatures(dataset: Dataset, title: str = "Temperatures") -> str:
     t = np.asarray(dataset.time, float)
-    fig, ax = _new_figure(title, "time (h)", "temperature (C)")
+    fig = Figure(title)
+    ax = fig.panel(xlabel="time (h)", ylabel="temperature (C)")
     s = _thin(t.size)
     for name in dataset.temp_names():
-        ax.plot(t[s] / 3600.0, np.asarray(dataset[f"temp_{name}"], float)[s], lw=1, label=name)
-    if dataset.temp_names():
-        ax.legend(loc="best", fontsize=8)
-    return figure_to_img(fig, title)
+        ax.line(t[s] / 3600.0, np.asarray(dataset[f"temp_{name}"], float)[s], label=name)
+    return svg_img(fig.render(), title)
 
 
 def plot_before_after(time_s: np.ndarray, before: np.ndarray, after: np.ndarray, title: str,
@@ -88,37 +82,47 @@ def plot_before_after(time_s: np.ndarray, before: np.ndarray, after: np.ndarray,
     spread reads at a glance and neither series hides the other.  Each panel says its std of the means."""
     t = np.asarray(time_s, float)
     bm = block_means(t, {"before": np.asarray(before, float), "after": np.asarray(after, float)}, block_s, segments)
-    fig = Figure(figsize=(FIGURE_WIDTH_IN, 4.8))
-    axes = fig.subplots(2, 1, sharex=True, sharey=True)
-    for ax, key, label, color in zip(axes, ("before", "after"), labels, ("C0", "C1")):
+    fig = Figure(title, sharex=True, sharey=True, panel_height_px=200)
+    for key, label, color in zip(("before", "after"), labels, COLORS):
         y = bm.columns[key]
-        finite = np.isfinite(y)
-        std = float(np.std(y[finite], ddof=1)) if finite.sum() > 1 else float("nan")
-        for seg in bm.segments or [slice(0, y.size)]:          # no line across a gap between segments
-            ax.plot(bm.time_s[seg] / 3600.0, y[seg], lw=1.0, color=color, marker=".", ms=2)
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_ylabel(unit)
-        ax.grid(True, alpha=0.3)
-        ax.set_title(f"{label}: {block_s:g}-s means, std {std:.3g} {unit}", fontsize=10, loc="left")
-    axes[0].figure.suptitle(title)
-    axes[-1].set_xlabel("time (h)")
-    return figure_to_img(fig, title)
+        x, y = _with_gaps(bm.time_s / 3600.0, y, bm.segments)
+        fig.panel(f"{label}: {block_s:g}-s means, std {_std(bm.columns[key]):.3g} {unit}", xlabel="time (h)",
+                  ylabel=unit, zero_line=True).line(x, y, color=color)
+    return svg_img(fig.render(), title)
+
+
+def plot_against(time_s: np.ndarray, residuals: dict[str, np.ndarray], regressors: dict[str, np.ndarray],
+                 title: str, unit: str = "deg/h", segments: list[slice] | None = None,
+                 block_s: float = BLOCK_S) -> str:
+    """Each residual (before, after...) against each regressor (T, dT/dt...) as ``block_s``-s means of
+    both: one row per regressor, one panel per residual side by side, all on one residual scale."""
+    t = np.asarray(time_s, float)
+    cols = {f"r:{k}": np.asarray(v, float) for k, v in residuals.items()}
+    cols.update({f"x:{k}": np.asarray(v, float) for k, v in regressors.items()})
+    bm = block_means(t, cols, block_s, segments)
+    fig = Figure(title, columns=len(residuals), sharey=True, panel_height_px=230)
+    for xlabel in regressors:
+        x = bm.columns[f"x:{xlabel}"]
+        for (name, _), color in zip(residuals.items(), COLORS):
+            y = bm.columns[f"r:{name}"]
+            fig.panel(f"{name}: {block_s:g}-s means, std {_std(y):.3g} {unit}", xlabel=xlabel,
+                      ylabel=f"residual ({unit})", zero_line=True).points(x, y, color=color)
+    return svg_img(fig.render(), title)
 
 
 def plot_residuals(residual: np.ndarray, x: np.ndarray, xlabel: str, title: str,
                    unit: str = "deg/h", flagged: np.ndarray | None = None) -> str:
     r = np.asarray(residual, float)
     x = np.asarray(x, float)
-    fig, ax = _new_figure(title, xlabel, f"residual ({unit})")
+    fig = Figure(title)
+    ax = fig.panel(xlabel=xlabel, ylabel=f"residual ({unit})", zero_line=True)
     s = _thin(r.size)
-    ax.plot(x[s], r[s], ".", ms=2, alpha=0.5)
+    ax.points(x[s], r[s])
     if flagged is not None and np.any(flagged):
         f = np.nonzero(np.asarray(flagged, bool))[0]
         f = f[_thin(f.size)]
-        ax.plot(x[f], r[f], "r.", ms=2, label="outside validity")
-        ax.legend(loc="best", fontsize=8)
-    ax.axhline(0.0, color="k", lw=0.5)
-    return figure_to_img(fig, title)
+        ax.points(x[f], r[f], label="outside validity", color=FLAG_COLOR)
+    return svg_img(fig.render(), title)
 
 
 def _adev_or_empty(series: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -132,13 +136,13 @@ def _adev_or_empty(series: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.n
 
 def plot_adev(series: dict[str, np.ndarray], rate_hz: float, title: str = "Allan deviation",
               unit: str = "deg/h") -> str:
-    fig, ax = _new_figure(title, "tau (s)", f"Allan deviation ({unit})")
+    fig = Figure(title)
+    ax = fig.panel(xlabel="tau (s)", ylabel=f"Allan deviation ({unit})", xlog=True, ylog=True)
     for label, values in series.items():
         taus, devs = _adev_or_empty(values, rate_hz)
         if taus.size:
-            ax.loglog(taus, devs, marker=".", lw=1, label=label)
-    ax.legend(loc="best", fontsize=8)
-    return figure_to_img(fig, title)
+            ax.line(taus, devs, label=label)
+    return svg_img(fig.render(), title)
 
 
 # --------------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ switches the gyro on (self-heating, warm-up) and off; the DS18B20 tree reads the
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import pickle
@@ -33,7 +34,7 @@ from bench.sim.audit import Received
 from bench.sim.chamber import ChamberSimulator
 from bench.sim.chamber_physics import ChamberModel
 from bench.sim.gyro import GyroStreamSimulator
-from bench.sim.lookahead import Lookahead
+from bench.sim.lookahead import DeviceTrack, Lookahead
 from bench.sim.physics import GyroPhysics, InputBatch, PhysicsInputs
 from bench.sim.psu import PsuModel, PsuSimulator
 from bench.sim.scenario import Scenario
@@ -107,6 +108,8 @@ class SimulatedBench:
         self.psu_model = PsuModel()
         self.psu_model.advance_to(t0)
         self._lock = threading.RLock()
+        # the chamber and table states along the physics' times, shared by every gyro of the bench
+        self.device_track = DeviceTrack()
         if self.lockstep:
             # integrated in blocks ahead of the clock, on exact device states (bench.sim.lookahead)
             inputs = _RowInputs(self)
@@ -204,10 +207,8 @@ class SimulatedBench:
         """The bench's physical state at the current bench instant (chamber air and controller, table,
         supply, the gyro's thermal network and noise processes, the probes' last conversions, the gyro
         line's frame counter), for a run checkpoint.  ``restore`` puts it back."""
-        with self._lock:
-            if self.lookahead is not None:
-                self.lookahead.settle()          # the physics at the instant, not a block ahead
-            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}
+        with self._lock, (self.lookahead.at_instant() if self.lookahead is not None else contextlib.nullcontext()):
+            parts = {name: _fields(name, obj) for name, obj in self._state_objects().items()}   # at the instant
             return {"version": SNAPSHOT_VERSION, "t": self.clock.now(), "scenario": self.scenario.name,
                     "seed": self.seed,
                     "state": base64.b64encode(zlib.compress(pickle.dumps(parts, protocol=5))).decode("ascii")}

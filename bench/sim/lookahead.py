@@ -22,18 +22,25 @@ a 1 s grid, instants on whole bench seconds).  Otherwise (an instant or a frame 
 the physics is driven instant by instant, as ``GyroPhysics.sample_many`` does, on the same exact
 device states.
 
+Device states at the times the physics asks for: the chamber and table are one pair of models on a
+bench with several gyros, so their states along a list of times come from one ``DeviceTrack`` per
+bench, computed on one pair of copies and reused by every unit that asks for the same times from the
+same model state (keyed by the models' fingerprint and the times: equal keys, equal states).  The
+supply is static between commands (``PsuModel``), so its columns are its state when asked.
+
 Block length: ``MIN_AHEAD_S`` after a block had to be dropped, doubling (to ``MAX_AHEAD_S``) each time
 a block is used to its end, so a stretch of commands (a table move) costs little extra work.
 """
 from __future__ import annotations
 
+import contextlib
 import io
 import math
 import pickle
 import random
 import threading
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
@@ -74,6 +81,41 @@ def clone(model: Any) -> Any:
     return copy
 
 
+class DeviceTrack:
+    """The chamber's air and the table's angles and rates along increasing bench times, computed on
+    copies of the models (the real ones stay where they are) and kept for the last (state, times)
+    asked: the units of one bench ask for the same times at the same instant."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._key: tuple[bytes, tuple[float, ...]] | None = None
+        self._states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.computed = 0                  # tracks integrated (not reused), for the benchmarks
+        self.reused = 0
+
+    def states(self, chamber: Any, table: Any, times: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(air (n,), angles (n, axes), rates (n, axes)) at ``times``, the models advanced through
+        them in order from their present state, as ``device_inputs_row`` on copies does."""
+        key = (fingerprint((chamber, table)), tuple(times))
+        with self._lock:
+            if key != self._key or self._states is None:
+                c, tb = clone(chamber), clone(table)
+                air, ang, rates = [], [], []
+                for g in key[1]:
+                    c.advance_to(g)
+                    tb.advance_to(g)
+                    air.append(c.air_c)
+                    ang.append(tb.angles())
+                    rates.append(tb.rates())
+                self._key = key
+                self._states = (np.array(air, dtype=float), np.array(ang, dtype=float).reshape(len(air), -1),
+                                np.array(rates, dtype=float).reshape(len(air), -1))
+                self.computed += 1
+            else:
+                self.reused += 1
+            return self._states
+
+
 @dataclass
 class _Block:
     checkpoint: tuple                  # the physics at t0
@@ -86,7 +128,7 @@ class Lookahead:
     """A ``GyroSource`` / probe source over ``GyroPhysics`` for the lockstep bench (module docstring)."""
 
     MIN_AHEAD_S = 4.0
-    MAX_AHEAD_S = 128.0
+    MAX_AHEAD_S = 512.0
 
     def __init__(self, bench: "SimulatedBench", physics: GyroPhysics, inputs: "_RowInputs") -> None:
         self.bench = bench
@@ -135,9 +177,27 @@ class Lookahead:
 
     # ---- continuity ---------------------------------------------------------------------------
     def settle(self) -> None:
-        """Put the physics back at the last served instant (before a snapshot of the bench)."""
+        """Put the physics back at the last served instant (the block ahead is dropped)."""
         with self._lock:
             self._settle()
+
+    @contextlib.contextmanager
+    def at_instant(self) -> Iterator[None]:
+        """The physics at the last served instant while the block is open (a snapshot of the bench),
+        then back where it was, block and all: a checkpoint every two bench minutes would otherwise
+        drop the block each time and integrate again from the shortest look-ahead."""
+        with self._lock:
+            blk, ph = self._block, self.physics
+            if blk is None or ph._state.t <= self._t:
+                yield
+                return
+            ahead = ph.checkpoint()
+            self._settle()
+            try:
+                yield
+            finally:
+                ph.rollback(ahead)
+                self._block = blk
 
     def reset(self, t: float) -> None:
         """After the physics was restored from a snapshot taken at bench time ``t``."""
@@ -182,15 +242,16 @@ class Lookahead:
             return self._build(t, n_to_t, frames)
         return self._direct(t, frames)
 
-    def _serve_real(self, t: float) -> None:
-        """The real device models follow the clock (front-ends and tests read them at the instant)."""
+    def _serve_real(self, t: float, keep_fingerprint: bool = True) -> None:
+        """The real device models follow the clock (front-ends and tests read them at the instant);
+        their fingerprint is kept for a block ahead to be checked against (none on the direct path)."""
         if t == self._t and self._fp is not None:
             return
         models = self._models()
         for m in models:
             m.advance_to(t)
         self._t = t
-        self._fp = fingerprint(models)
+        self._fp = fingerprint(models) if keep_fingerprint else None
 
     def _settle(self) -> None:
         blk, ph = self._block, self.physics
@@ -203,12 +264,11 @@ class Lookahead:
             ph.run_grid(k)                   # the same steps on the same recorded inputs
 
     def _build(self, t: float, n_to_t: int, frames: list[float] | None) -> list[GyroSample]:
-        ph, b = self.physics, self.bench
+        ph = self.physics
         t0 = ph._state.t
         n = n_to_t + round(self._ahead / ph.h)
-        copies = [clone(m) for m in self._models()]
         times = t0 + ph.h * np.arange(1, n + 1)          # the grid times GyroPhysics integrates to
-        self.inputs.rows = {g: _row(b, copies, g) for g in times.tolist()}
+        self.inputs.rows = self._rows(times.tolist())
         cp = ph.checkpoint()
         out = ph.run_grid(n)
         self._block = _Block(cp, t0, {g: i for i, g in enumerate(times.tolist())}, out)
@@ -218,19 +278,34 @@ class Lookahead:
 
     def _direct(self, t: float, frames: list[float] | None) -> list[GyroSample]:
         """One instant on the physics' own path (instants or frames off the grid)."""
-        ph, b = self.physics, self.bench
+        ph = self.physics
         self.stats["direct"] += 1
         for m in self._models():
             m.advance_to(self._t)
-        copies = [clone(m) for m in self._models()]
         base = ph._state.t
         grid = [base + ph.h * k for k in range(1, int(math.floor((t - base) / ph.h + 1e-9)) + 1)]
         wanted = sorted(set(grid) | set(frames or ()) | {t})
-        self.inputs.rows = {g: _row(b, copies, g) for g in wanted if g > self._t or g == t}
+        self.inputs.rows = self._rows([g for g in wanted if g > self._t or g == t])
         samples = ph.sample_many(frames) if frames else []
         ph.advance_to(t)
-        self._serve_real(t)
+        self._serve_real(t, keep_fingerprint=False)
         return samples
+
+    def _rows(self, times: list[float]) -> dict[float, np.ndarray]:
+        """``device_inputs_row`` at each of ``times`` (increasing), the models advanced through them
+        from their present state on copies: the chamber and table from the bench's shared track."""
+        b = self.bench
+        air, angles, rates = b.device_track.states(b.chamber_model, b.table_model, times)
+        g = b.geometry
+        outer, inner = g.outer_axis_number - 1, g.inner_axis_number - 1
+        psu = b.psu_model                  # static between commands: its state now is its state then
+        on = bool(psu.output_on)
+        since = psu.on_since if on else None
+        n = len(times)
+        table = np.column_stack((np.array(times, dtype=float), air, angles[:, outer], angles[:, inner],
+                                 rates[:, outer], rates[:, inner], np.full(n, float(on)),
+                                 np.full(n, np.nan if since is None else float(since))))
+        return dict(zip(times, table))
 
 
 def _row(bench: "SimulatedBench", models: list[Any], t: float) -> np.ndarray:

@@ -27,6 +27,7 @@ serial-to-TCP bridge.  Lockstep only, like ``drop_line``.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import tempfile
@@ -102,6 +103,7 @@ class _UnitView:
         self._outer_axis, self._inner_axis, self._mounting = check_geometry(self.geometry)
         self.chamber_model = bench.chamber_model
         self.table_model = bench.table_model
+        self.device_track = bench.device_track
         self.psu_model = psu_model
 
 
@@ -282,10 +284,10 @@ class MultiGyroBench(SimulatedBench):
         super().stop()
 
     def snapshot(self) -> dict[str, Any]:
-        with self._lock:
+        with self._lock, contextlib.ExitStack() as at_instant:
             for unit in self.units[1:]:
-                if unit.lookahead is not None:
-                    unit.lookahead.settle()      # each unit's physics at the instant, not a block ahead
+                if unit.lookahead is not None:   # each unit's physics at the instant, its block kept
+                    at_instant.enter_context(unit.lookahead.at_instant())
             return super().snapshot()
 
     def restore(self, snap: dict[str, Any]) -> float:

@@ -155,15 +155,51 @@ class _Axis:
             self.acceleration = 0.0
 
     def advance(self, duration: float, dt: float) -> None:
+        """``step`` by ``dt`` until ``duration`` has passed, or until ``steady``, then coast the rest.
+
+        The same arithmetic as ``steady`` / ``step`` in the same order (so the same floats), with what
+        cannot change during the call (mode, interlock, demands, limits) read once: a move runs this
+        loop hundreds of times a bench second, on the bench and on its look-ahead copies."""
         left = duration
+        closed = self.interlock == "Closed"
+        mode = self.mode
+        fixed = 0.0 if not closed or mode == "O" else (self.rate_demand if mode == "R" else None)
+        holds = closed and mode == "P"
+        a = self.accel()
+        v_lim = self.rate_limit.get("P", self.max_rate)
+        brake = BRAKING_FRACTION * a
+        zone = 2.0 * brake / CAPTURE_GAIN ** 2
+        demand = self.position_demand
+        position, rate, acceleration = self.position, self.rate, self.acceleration
         while left > 1e-12:
-            if self.steady():
-                self.position = wrap180(self.position + self.rate * left)
+            if fixed is not None:
+                target = fixed
+            else:
+                err = wrap180(demand - position)
+                mag = abs(err)
+                v = math.sqrt(2.0 * brake * mag) if mag > zone else CAPTURE_GAIN * mag
+                target = math.copysign(min(v_lim, v), err)
+            if rate == target and (not holds or (rate == 0.0 and position == demand)):     # steady
+                self.position = wrap180(position + rate * left)
+                self.rate = rate
                 self.acceleration = 0.0
                 return
             h = min(dt, left)
-            self.step(h)
+            if abs(target - rate) <= a * h:
+                dv, new_rate = target - rate, target
+            else:
+                dv = math.copysign(a * h, target - rate)
+                new_rate = rate + dv
+            position = wrap180(position + 0.5 * (rate + new_rate) * h)
+            acceleration = dv / h
+            rate = new_rate
+            if holds:
+                if abs(wrap180(demand - position)) <= SETTLE_POSITION_DEG and abs(rate) <= SETTLE_RATE_DPS:
+                    position, rate, acceleration = demand, 0.0, 0.0
+            elif rate == 0.0 and target == 0.0:
+                acceleration = 0.0
             left -= h
+        self.position, self.rate, self.acceleration = position, rate, acceleration
 
 
 class TableModel:

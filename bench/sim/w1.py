@@ -75,14 +75,24 @@ def good_scratchpad(celsius: float, bits: int = 12) -> bytes:
     raw = round(min(max(celsius, MIN_C), MAX_C) * 16)
     undefined = 12 - bits
     raw = (raw >> undefined) << undefined
-    reg = raw & 0xFFFF
-    return with_crc(bytes([reg & 0xFF, reg >> 8, TH, TL, config_byte(bits), 0xFF, 0x10 - (raw & 0x0F), 0x10]))
+    key = (raw, bits)
+    pad = _GOOD.get(key)
+    if pad is None:             # at most one per register value (a few thousand): every probe, every 2 s
+        reg = raw & 0xFFFF
+        pad = _GOOD[key] = with_crc(bytes([reg & 0xFF, reg >> 8, TH, TL, config_byte(bits), 0xFF,
+                                           0x10 - (raw & 0x0F), 0x10]))
+    return pad
+
+
+_GOOD: dict[tuple[int, int], bytes] = {}
 
 
 POWER_ON_SCRATCHPAD = with_crc(bytes([0x50, 0x05, TH, TL, 0x7F, 0xFF, 0x0C, 0x10]))
 FAILED_CONVERSION_SCRATCHPAD = with_crc(bytes([0xFF, 0x07, TH, TL, 0x7F, 0xFF, 0x0C, 0x10]))
 BUS_OPEN_SCRATCHPAD = b"\xff" * 9
 ALL_ZERO_SCRATCHPAD = bytes(9)
+_FAULT_SCRATCHPADS = {FAULT_CRC: BUS_OPEN_SCRATCHPAD, FAULT_POWER_ON: POWER_ON_SCRATCHPAD,
+                      FAULT_ALL_ZERO: ALL_ZERO_SCRATCHPAD, FAULT_FAILED_CONVERSION: FAILED_CONVERSION_SCRATCHPAD}
 
 
 def w1_slave_text(current: bytes, retained: bytes) -> tuple[str, bool]:
@@ -116,6 +126,8 @@ class W1Faults:
             self._active.pop(name, None)
 
     def active(self, name: str) -> str | None:
+        if not self._active:         # no fault set (the usual case): no lock to take
+            return None
         with self._lock:
             entry = self._active.get(name)
             if entry is None:
@@ -209,13 +221,7 @@ class W1TreeSimulator(BackgroundLoop):
             self._written.pop(name, None)
             self._last_read.pop(name, None)
             return
-        current = {
-            None: None,
-            FAULT_CRC: BUS_OPEN_SCRATCHPAD,
-            FAULT_POWER_ON: POWER_ON_SCRATCHPAD,
-            FAULT_ALL_ZERO: ALL_ZERO_SCRATCHPAD,
-            FAULT_FAILED_CONVERSION: FAILED_CONVERSION_SCRATCHPAD,
-        }[fault]
+        current = None if fault is None else _FAULT_SCRATCHPADS[fault]
         if current is None:
             current = good_scratchpad(celsius, self.resolution_bits)
         read = (current, self._retained[name])
