@@ -263,9 +263,14 @@ class LockstepClock:
 
     # ---- holding (tests) -----------------------------------------------------------------------
     def hold_at(self, t: float) -> None:
+        """Stop the driving thread at bench time ``t``; moves a hold it stands at (it goes on to ``t``).
+        Holding again at the same instant changes nothing."""
         with self._cond:
+            if self._hold == float(t):
+                return
             self._hold = float(t)
             self._held = False
+            self._cond.notify_all()
 
     def release(self) -> None:
         with self._cond:

@@ -1,12 +1,13 @@
 """Helpers for the operator-service tests (tests/test_api_*.py): tokens, a database per test, the
-device doubles of tests/test_engine_doubles.py on an accelerated clock, an in-process worker."""
+device doubles of tests/test_engine_doubles.py on an accelerated or a lockstep clock, an in-process
+worker."""
 from __future__ import annotations
 
 import itertools
 import uuid
 from typing import Any
 
-from bench.clock import AcceleratedClock
+from bench.clock import AcceleratedClock, LockstepClock
 from bench.config import BenchConfig, TurntableConfig
 from bench.devices.orientation import EIGHT_POSITION_GEOMETRY
 from bench.engine import Devices, EngineConfig
@@ -22,6 +23,7 @@ TOKENS_TEXT = ",".join(f"{role}:{tok}" for tok, role in TOKENS.items())
 SHORT_RAMP = dict(orientation="WSU", start_c=30.0, soak_h=0.05, warmup_min=1.0, rate_c_per_min=2.0, end_c=20.0,
                   final_hold_min=2.0)
 _names = itertools.count()
+T0 = 1_767_225_600.0          # the bench instant a lockstep ``DoublesBench`` starts at
 
 
 def bench_config(name: str) -> BenchConfig:
@@ -35,13 +37,20 @@ def engine_config() -> EngineConfig:
 
 
 class DoublesBench:
-    """Device doubles sharing one thermal model on an accelerated clock; ``factory`` opens a fresh
-    bundle per run (as real drivers would be)."""
+    """Device doubles sharing one thermal model on an accelerated clock (or ``clock``); ``factory``
+    opens a fresh bundle per run (as real drivers would be)."""
 
     def __init__(self, speed: float = 300.0, start_c: float = 30.0, clock=None) -> None:
         self.clock = clock or AcceleratedClock(speed)
         self.thermal = Thermal(self.clock, start_c)
         self.opened = 0
+
+    @classmethod
+    def lockstep(cls, pace: float | None = None, start_c: float = 30.0) -> "DoublesBench":
+        """The doubles on a ``LockstepClock`` starting at ``T0``: bench time moves only when a run's engine
+        sleeps (at most ``pace`` x wall; None: as fast as the host can), so ``hold_at`` can stop a run at
+        a known bench instant whatever the load (``tests.service_support.hold_clock_at``)."""
+        return cls(start_c=start_c, clock=LockstepClock(T0, pace))
 
     def factory(self, config: BenchConfig) -> Devices:
         self.opened += 1

@@ -76,6 +76,38 @@ def hold_bench_at(hold: Path, t: float, timeout: float = SAFETY_S, proc: subproc
              proc=proc, log=log)
 
 
+def hold_clock_at(clock, t: float, ended: Callable[[], Any] | None = None, timeout: float = SAFETY_S) -> None:
+    """The same in one process: let the thread driving ``clock`` (a ``LockstepClock``) go on to bench time
+    ``t`` and wait until it stands there (``t`` served, nothing done at ``t`` yet); it stays there until
+    ``clock.release()`` or the next hold.  ``ended()`` true means the driver can no longer get there
+    (its run ended): fail at once rather than at the safety net."""
+    clock.hold_at(t)
+
+    def held():
+        if clock.wait_held(0.05):
+            return True
+        if ended is not None and ended():
+            raise AssertionError(f"the run ended before bench time {t} (it stopped at {clock.now()})")
+        return False
+    wait_for(held, timeout, f"bench time held at {t}", interval=0.0)
+
+
+def hold_clock_until(clock, predicate: Callable[[], Any], step_s: float, limit_s: float,
+                     ended: Callable[[], Any] | None = None) -> float:
+    """Hold ``clock`` at every ``step_s`` bench seconds from now until ``predicate()`` is true at a hold
+    (evaluated while the driver stands still); fails after ``limit_s`` bench seconds.  The instant it
+    holds at: the same one on every run of a deterministic bench, however loaded the host."""
+    t = clock.now()
+    end = t + limit_s
+    while True:
+        t += step_s
+        hold_clock_at(clock, t, ended)
+        if predicate():
+            return t
+        if t >= end:
+            raise AssertionError(f"not there after {limit_s} bench seconds of holds every {step_s} s")
+
+
 class Services:
     """The processes one test starts, each logging to ``<tmp>/<log>``; ``close()`` (or leaving the
     ``with`` block) ends those still running: SIGTERM, then SIGKILL after ``SAFETY_S / 10``.  ``env``

@@ -37,6 +37,21 @@ def test_hold_stops_the_driver_at_the_instant_until_released():
     assert done.wait(10.0) and clock.now() == T0 + 100.0
 
 
+def test_a_hold_moved_while_held_lets_the_driver_go_on_to_the_new_instant():
+    clock = LockstepClock(T0, None)
+    clock.hold_at(T0 + 10.0)
+    driver = threading.Thread(target=lambda: clock.advance_to(T0 + 100.0), daemon=True)
+    driver.start()
+    assert clock.wait_held(10.0) and clock.now() == T0 + 10.0
+    clock.hold_at(T0 + 10.0)                        # the same instant again: still held there
+    assert clock.held and clock.wait_held(0.0)
+    clock.hold_at(T0 + 40.0)                        # moved: the driver goes on and stands at the new one
+    assert clock.wait_held(10.0) and clock.now() == T0 + 40.0
+    clock.release()
+    driver.join(10)
+    assert not driver.is_alive() and clock.now() == T0 + 100.0
+
+
 def test_hold_file_across_processes(tmp_path):
     hold = tmp_path / "hold"
     hold.write_text(repr(T0 + 4.0))

@@ -129,3 +129,23 @@ def test_html_effects_table_never_prints_nan_for_cross_validation():
     table = page[page.index("effects added"):]
     table = table[: table.index("</table>")]
     assert "nan" not in table and f"n/a ({CV_CONFINED})" in table
+
+
+def test_two_candidates_the_training_run_cannot_tell_apart_are_named_as_an_ambiguity():
+    from bench.fit.closeloop_search import AMBIGUOUS_DBIC, search
+
+    rng = np.random.default_rng(7)
+    t = np.arange(5.0, 40_000.0, FINE_S)
+    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
+    fine = _inputs(t, temp)
+    lagged = fx.first_order_lag(temp, t, 900.0) - temp
+    twin = lambda name: fx.Family(name, (("probe", "t1"),), lambda x, _v: {name: lagged}, chosen_probe=False)
+    other = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
+    y = 0.05 * lagged + rng.normal(0, 0.02, len(t))
+    problem = _problem(fine, y, [twin("thermal_lag"), twin("gradient"), other])
+    chosen, steps = search(problem)
+    assert len(chosen) == 1
+    ev = steps[0]["evidence"]
+    names = {a["kind"] for a in ev["ambiguous_with"]}
+    assert names == {"thermal_lag", "gradient"} - {chosen[0].kind}
+    assert all(0 <= a["bic_margin"] < AMBIGUOUS_DBIC for a in ev["ambiguous_with"])

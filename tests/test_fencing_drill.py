@@ -4,8 +4,10 @@ a second worker takes the run over and completes it; when the first wakes (SIGCO
 command to any device, writes nothing to the run, leaves its run loop; the run ends ``completed`` and
 every frame index is stored once.
 
-The freeze is deterministic: the first worker cannot go on while frozen, whatever the wall clock does;
-the test waits on states (takeover, completion), never on a duration.
+The doubles run on a lockstep clock: bench time stands at a known instant (a third into the run)
+while the test checks that A drives the run and arms the freeze, so A freezes there, mid-run, whatever
+the load.  The freeze is deterministic: the first worker cannot go on while frozen, whatever the wall
+clock does; the test waits on states (hold, takeover, completion), never on a duration.
 """
 from __future__ import annotations
 
@@ -16,9 +18,10 @@ from sqlalchemy import select
 from bench.storage import queries
 from bench.storage.models import Event, FrameChunk
 from bench.engine import Devices
-from tests.api_support import SHORT_RAMP, DoublesBench, register_bench, start_worker, unique_bench, wait_for
-from tests.service_support import SAFETY_S
+from tests.api_support import SHORT_RAMP, T0, DoublesBench, register_bench, start_worker, unique_bench, wait_for
+from tests.service_support import SAFETY_S, hold_clock_at
 
+FREEZE_AT = T0 + 400.0          # in the 720-s soak of the run (about 1300 bench s in all)
 
 
 class Freezer:
@@ -61,7 +64,9 @@ class Recorded:
 def test_a_worker_frozen_past_its_lease_wakes_fenced_and_the_run_completes(db):
     name = unique_bench()
     register_bench(db, name)
-    doubles = DoublesBench(speed=150.0)
+    doubles = DoublesBench.lockstep()
+    clock = doubles.clock
+    clock.hold_at(FREEZE_AT)                                   # before any worker drives the clock
     freezer = Freezer()
 
     plain = doubles.factory
@@ -87,10 +92,13 @@ def test_a_worker_frozen_past_its_lease_wakes_fenced_and_the_run_completes(db):
     a._heartbeat = frozen_heartbeat
     b = None
     try:
-        wait_for(lambda: a.current_run == run_id and len(freezer.calls) > 50, SAFETY_S,
-                 "worker A driving the run")
-        freezer.freeze.set()                                   # SIGSTOP
+        hold_clock_at(clock, FREEZE_AT, ended=lambda: run_id in dict(a.runs_done))
+        assert a.current_run == run_id and len(freezer.calls) > 50, "worker A driving the run"
+        assert _run(db, run_id).status == "running"
+        freezer.freeze.set()                                   # SIGSTOP at A's next device call
+        clock.release()
         wait_for(freezer.frozen.is_set, SAFETY_S, "worker A frozen")
+        assert FREEZE_AT <= clock.now() < FREEZE_AT + 10.0     # mid-run: within a tick of the hold
         b, b_thread = start_worker(db, name, doubles)
         wait_for(lambda: _run(db, run_id).worker == b.worker_id, SAFETY_S, "worker B taking the run over")
         done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, SAFETY_S,
@@ -117,6 +125,7 @@ def test_a_worker_frozen_past_its_lease_wakes_fenced_and_the_run_completes(db):
             expected += count
         assert expected > 0 and "worker_takeover" in kinds and "run_failed" not in kinds
     finally:
+        clock.release()
         freezer.thaw.set()
         a.stop()
         if b is not None:
@@ -131,3 +140,32 @@ def _run(db, run_id):
         run = queries.get_run(s, run_id)
         s.expunge(run)
         return run
+
+
+def test_a_run_left_suspended_before_its_first_checkpoint_is_started_again_by_the_next_worker(db):
+    """A worker died (or froze) after its run was suspended from the first chamber reading, before any
+    checkpoint: the worker taking the run over starts it from the beginning (it used to fail it: 'only
+    a queued run can start')."""
+    import datetime as dt
+
+    from bench.storage.models import utcnow
+
+    name = unique_bench()
+    register_bench(db, name)
+    with db.session() as s:
+        run = queries.create_run(s, procedure="thermal_ramp", parameters=SHORT_RAMP, gyro_id="RLG-S", bench_name=name)
+        run_id = run.id
+        queries.stamp_run_status(run, "running", utcnow())
+        queries.stamp_run_status(run, "suspended", utcnow())
+        run.worker, run.heartbeat_at = "gone@elsewhere", utcnow() - dt.timedelta(hours=1)
+    w, thread = start_worker(db, name, DoublesBench.lockstep())
+    try:
+        done = wait_for(lambda: (r := _run(db, run_id)).status in ("completed", "failed", "aborted") and r, SAFETY_S,
+                        "the run to end under the new worker")
+    finally:
+        w.stop()
+        thread.join(30)
+    assert done.status == "completed" and done.error is None and done.worker == w.worker_id
+    with db.session() as s:
+        kinds = [e.kind for e in s.scalars(select(Event).where(Event.run_id == run_id))]
+    assert "worker_takeover" in kinds and "run_started" in kinds and "run_failed" not in kinds

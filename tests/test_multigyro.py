@@ -297,6 +297,12 @@ def test_api_queues_gyro_ids_and_the_worker_runs_them(tmp_path):
         done = client.get(f"/runs/{run_id}", headers=VIEWER).json()
         assert done["status"] == "completed", done.get("error")
         assert [(u["slot"], u["status"]) for u in done["units"]] == [("g1", "completed"), ("g2", "completed")]
+        # the parent's sampling lists each gyro's probes and frames (it stores none of its own)
+        assert done["sampling"]["probes"]["readings"] == 0 and done["sampling"]["chamber"]["readings"] > 0
+        assert sorted(done["sampling"]["units"]) == ["g1", "g2"]
+        for slot, unit_sampling in done["sampling"]["units"].items():
+            assert unit_sampling["gyro"]["readings"] > 100, slot
+            assert unit_sampling["probes"]["max_interval_s"] <= 2.0, slot
         for u in done["units"]:
             unit = client.get(f"/runs/{u['run_id']}", headers=VIEWER).json()
             assert unit["parent_id"] == run_id and unit["gyro_id"] == u["gyro_id"]

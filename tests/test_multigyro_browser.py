@@ -76,6 +76,11 @@ def test_run_page_shows_each_gyro_state_and_plot(service):
             page.wait_for_selector("#run-fits tr[data-slot='g3']")
             fit_rows = [page.text_content(f"#run-fits tr[data-slot='{slot}'] td:nth-child(2)") for slot in ("g1", "g2", "g3")]
             assert fit_rows == ["g1 (MG-A)", "g2 (MG-B)", "g3 (MG-C)"]
+            # the sampling card lists each gyro's probes and frames (the parent run stores none itself)
+            sampled = page.locator("#sampling-table tbody td:first-child").all_inner_texts()
+            assert [name for name in sampled if name.startswith("g")] == [
+                f"{slot}: {what}" for slot in ("g1", "g2", "g3") for what in ("probes (bus reads)", "gyro frames")]
+            assert "Gyro frames" not in sampled and "Probes (bus reads)" not in sampled
             shot(page, "multigyro-run-completed")
             assert errors == []
         except BaseException:

@@ -1,10 +1,13 @@
 """Abort (the simulators end in the safe state), a chamber alarm (suspends, resumes once cleared) and
 bad plans (refused before anything is created or moved), on the simulated bench with the real
-drivers, the engine and ``SqlRunStore``."""
+drivers, the engine and ``SqlRunStore``.
+
+The simulated bench runs in lockstep (``bench.clock.LockstepClock``, as fast as the host can) and the
+test holds its bench time at known instants while it looks and acts: what the run is doing there does
+not depend on the host's load."""
 from __future__ import annotations
 
 import threading
-import time
 
 import pytest
 from sqlalchemy import select
@@ -13,18 +16,20 @@ import procedures
 from bench.engine import Engine, QueueControl
 from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
 from bench.engine.sqlstore import SqlRunStore, new_run, run_report
-from bench.sim.bench import SimulatedBench
+from bench.sim.bench import SimulatedBench, lockstep_clock
 from bench.storage.db import open_database
 from bench.storage.models import Event, Run, Segment
-from tests.service_support import SAFETY_S
+from tests.service_support import SAFETY_S, hold_clock_at, hold_clock_until
 from tests.test_runs_support import cli
 
 
 class SimRun:
-    """A procedure on an in-process simulated bench, engine in a thread (so the test can act meanwhile)."""
+    """A procedure on an in-process simulated bench in lockstep, engine in a thread (the clock's driver),
+    so the test can hold bench time and act meanwhile."""
 
-    def __init__(self, url: str, speed: float, procedure: str, **params) -> None:
-        self.bench = SimulatedBench(speed=speed, data_rate_hz=1).start()
+    def __init__(self, url: str, procedure: str, **params) -> None:
+        self.clock = lockstep_clock(None, seed=0)
+        self.bench = SimulatedBench(clock=self.clock, seed=0, data_rate_hz=1).start()
         self.config = self.bench.config
         self.db = open_database(url)
         module = procedures.get(procedure)
@@ -41,6 +46,8 @@ class SimRun:
                              self.engine_config, make_fit_hook(self.db, self.store, latitude_deg=45.0))
         self.status: str | None = None
         self.thread = threading.Thread(target=self._go, daemon=True)
+        self.t0 = self.clock.now()
+        self.clock.hold_at(self.t0)              # nothing moves until the test holds it further on
 
     def _go(self) -> None:
         self.status = self.engine.run(str(self.run_id), self.plan)
@@ -49,20 +56,29 @@ class SimRun:
         self.thread.start()
         return self
 
-    def wait_for(self, predicate, timeout_s: float = SAFETY_S, what: str = "") -> None:
-        deadline = time.monotonic() + timeout_s
-        while not predicate():
-            assert self.thread.is_alive(), f"run ended ({self.status}) before {what}"
-            assert time.monotonic() < deadline, f"timed out waiting for {what}"
-            time.sleep(0.01)
+    def ended(self) -> bool:
+        return not self.thread.is_alive()
+
+    def hold_at(self, t: float) -> None:
+        hold_clock_at(self.clock, t, self.ended)
+
+    def hold_until(self, predicate, what: str, step_s: float = 10.0, limit_s: float = 4 * 3600.0) -> float:
+        """Hold every ``step_s`` bench seconds until ``predicate()`` holds there (``what``)."""
+        try:
+            return hold_clock_until(self.clock, predicate, step_s, limit_s, self.ended)
+        except AssertionError as exc:
+            raise AssertionError(f"waiting for {what}: {exc} (run status {self.status})") from None
 
     def finish(self, timeout_s: float = SAFETY_S) -> str:
+        self.clock.release()
         self.thread.join(timeout_s)
         assert not self.thread.is_alive(), "engine did not finish"
         self.store.close(self.run_id)
         return self.status
 
     def close(self) -> None:
+        self.clock.release()
+        self.thread.join(SAFETY_S)
         close_devices(self.devices)
         self.bench.stop()
         self.db.dispose()
@@ -75,15 +91,15 @@ def url(tmp_path):
 
 def test_abort_mid_ramp_leaves_the_simulators_in_the_safe_state(url):
     # WSU: outer axis at 180 deg, so parking at (0, 0) is a real move; ramp 30 -> 15 C
-    r = SimRun(url, 100.0, "thermal_ramp", orientation="WSU", start_c=30.0, soak_h=0.01, warmup_min=0.5,
+    r = SimRun(url, "thermal_ramp", orientation="WSU", start_c=30.0, soak_h=0.01, warmup_min=0.5,
                rate_c_per_min=1.0, end_c=15.0, final_hold_min=1.0).start()
     try:
-        r.wait_for(lambda: r.engine.current is not None and r.engine.current.step.kind == "ramp"
-                   and r.engine.current.elapsed > 60.0, what="the ramp")
+        r.hold_until(lambda: r.engine.current is not None and r.engine.current.step.kind == "ramp"
+                     and r.engine.current.elapsed > 60.0, "the ramp")
         assert r.bench.chamber_model.mode == 2            # the chamber runs its ramp profile
         assert r.bench.psu_model.output_on
         assert abs(r.bench.table_model.angles()[0]) == pytest.approx(180.0, abs=0.05)
-        r.control.request("abort")
+        r.control.request("abort")                        # taken at the engine's next tick
         assert r.finish() == "aborted"
         cfg = r.config.safe_state
         chamber, table, psu = r.bench.chamber_model, r.bench.table_model, r.bench.psu_model
@@ -105,16 +121,17 @@ def test_abort_mid_ramp_leaves_the_simulators_in_the_safe_state(url):
 
 
 def test_chamber_alarm_suspends_and_the_run_resumes_after_it_clears(url):
-    r = SimRun(url, 300.0, "thermal_ramp", start_c=26.0, soak_h=0.01, warmup_min=4.0, rate_c_per_min=2.0,
+    r = SimRun(url, "thermal_ramp", start_c=26.0, soak_h=0.01, warmup_min=4.0, rate_c_per_min=2.0,
                end_c=24.0, final_hold_min=1.0).start()
     try:
-        r.wait_for(lambda: r.engine.current is not None and r.engine.current.records
-                   and r.engine.current.elapsed > 30.0, what="the warm-up recording")
+        t = r.hold_until(lambda: r.engine.current is not None and r.engine.current.records
+                         and r.engine.current.elapsed > 30.0, "the warm-up recording")
         r.bench.chamber_model.inject_alarm(2)             # high deviation alarm, forced
-        r.wait_for(lambda: r.engine.suspension is not None, what="the suspension")
-        r.wait_for(lambda: _stored_status(r) == "suspended", what="the stored status 'suspended'")
-        time.sleep(0.3)                                   # stays suspended while the alarm is latched
+        r.hold_at(t + 60.0)                               # the chamber is read every 5 bench s
         assert r.engine.suspension is not None
+        assert _stored_status(r) == "suspended"
+        r.hold_at(t + 60.0 + 2 * r.engine_config.settle_s)  # stays suspended while the alarm is latched
+        assert r.engine.suspension is not None and _stored_status(r) == "suspended"
         r.bench.chamber_model.inject_alarm(0)             # condition gone ...
         r.bench.chamber_model.clear_alarm()               # ... and acknowledged at the panel (register 312)
         assert r.finish() == "completed"

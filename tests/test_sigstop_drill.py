@@ -7,7 +7,18 @@ request logs (``bench.sim.audit``) show that nothing reached any device on A's l
 Links: A's are those that sent requests before B was started (A reaches the chamber over Modbus TCP, B
 over Modbus RTU); B's are those first seen between B's start and the SIGCONT (A is stopped then).  Any
 request after the takeover on a link that is not B's counts as A's.  The test waits on states (run
-claimed, taken over, ended; A's log), never on a duration.
+claimed, suspended, taken over, ended; A's log), never on a duration.
+
+The workers drive the simulators from other processes, so bench time (an accelerated clock) cannot be
+held.  The run is held instead: a chamber alarm, raised before the run starts, keeps it suspended (active,
+its steps not advancing) from A's first reading until the test clears it, after A woke and left.  So B
+is still driving when A wakes however slow the host is; the only wall limit is the engine's suspension
+cap (4 bench hours: minutes of wall time at x60).  A is stopped at a moment it holds no database lock
+(checked after each SIGSTOP, else woken and stopped again): a process stopped inside a transaction
+blocks every other writer of an SQLite file, and the rows it locked on PostgreSQL, so B could never
+take over; that is the database's limit, not the fencing this drill is about.  Once A has left its run loop it is stopped: a woken
+worker may legitimately take a run back whose heartbeat went stale on a loaded host, which is not this
+drill's question.
 """
 from __future__ import annotations
 
@@ -38,7 +49,7 @@ def db_url(request, tmp_path):
 
 def _worker(services: Services, name: str, config: str, log: str) -> subprocess.Popen:
     return services.worker("--bench", name, "--config", str(services.tmp / config), "--no-jobs", "--heartbeat",
-                           "0.2", "--stale-after", "1.5", "--poll", "0.05", "--log-level", "info", log=log)
+                           "0.2", "--stale-after", "3", "--poll", "0.05", "--log-level", "info", log=log)
 
 
 def _wait(predicate, what: str, logs=()):
@@ -50,6 +61,48 @@ def _wait(predicate, what: str, logs=()):
         time.sleep(0.02)
     tails = "\n".join(f"--- {p.name}:\n{p.read_text()[-2000:]}" for p in logs if p.exists())
     raise AssertionError(f"timed out waiting for {what}\n{tails}")
+
+
+def _holds_no_lock(db, rid: int, bench: str) -> bool:
+    """Whether another process could write the run's rows now: SQLite's write lock is free, or the run's,
+    the bench's and the frame cursor's rows are not locked on PostgreSQL."""
+    from sqlalchemy import text
+    from sqlalchemy.exc import OperationalError
+
+    if db.dialect == "sqlite":
+        import sqlite3
+
+        conn = sqlite3.connect(db.engine.url.database, timeout=0, isolation_level=None)
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            conn.execute("ROLLBACK")
+            return True
+        except sqlite3.OperationalError:
+            return False
+        finally:
+            conn.close()
+    try:
+        with db.engine.connect() as conn:
+            with conn.begin() as tx:
+                for sql in ("SELECT id FROM runs WHERE id = :rid FOR UPDATE NOWAIT",
+                            "SELECT id FROM benches WHERE name = :bench FOR UPDATE NOWAIT",
+                            "SELECT run_id FROM frame_cursors WHERE run_id = :rid FOR UPDATE NOWAIT"):
+                    conn.execute(text(sql), {"rid": rid, "bench": bench})
+                tx.rollback()
+        return True
+    except OperationalError:
+        return False
+
+
+def _stop_outside_transactions(proc: subprocess.Popen, db, rid: int, bench: str) -> int:
+    """SIGSTOP ``proc`` at a moment it holds no lock of the run (see the module docstring); attempts made."""
+    for attempt in range(1, 1001):
+        proc.send_signal(signal.SIGSTOP)
+        if _holds_no_lock(db, rid, bench):
+            return attempt
+        proc.send_signal(signal.SIGCONT)
+        time.sleep(0.01)
+    raise AssertionError("worker A held a database lock at each of 1000 stops")
 
 
 def _run(db, rid):
@@ -71,14 +124,16 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
         doc = json.loads((tmp_path / "a.json").read_text())
         doc["bench_config"]["chamber"].update(transport="modbus_rtu", address=sim.endpoints["chamber_modbus_rtu"])
         (tmp_path / "b.json").write_text(json.dumps(doc))
+        sim.chamber_model.inject_alarm(2)            # the run will be suspended from its first chamber reading
         a = _worker(services, name, "a.json", "a.log")
         with db.session() as s:
             rid = queries.create_run(s, procedure="thermal_ramp", bench_name=name, gyro_id="SIGSTOP",
-                                     parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.3)).id
-        run = _wait(lambda: (r := _run(db, rid)).status == "running" and r.progress > 0.05 and r,
-                    "worker A driving the run", logs)
+                                     parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.02, warmup_min=0.5,
+                                                     end_c=26.0, final_hold_min=0.5)).id
+        run = _wait(lambda: (r := _run(db, rid)).status == "suspended" and r, "worker A driving the run, suspended",
+                    logs)
         a_id = run.worker
-        a.send_signal(signal.SIGSTOP)
+        _stop_outside_transactions(a, db, rid, name)
         b_started = time.monotonic()
         b = _worker(services, name, "b.json", "b.log")
         run = _wait(lambda: (r := _run(db, rid)).worker not in (None, a_id) and r, "worker B taking over", logs)
@@ -89,16 +144,24 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
             seen = sim.received()
             return {e.link for e in seen if e.mono >= b_started} - {e.link for e in seen if e.mono < b_started}
 
-        # B restores the hardware over its own links (chamber RTU, turntable, power supply) before A wakes
+        # B restores the hardware over its own links (chamber RTU, turntable, power supply) and finds the
+        # alarm again before A wakes
         _wait(lambda: "modbus_rtu" in (links := b_links_now()) and len(links) >= 3, "worker B driving", logs)
-        active_at_wake = _run(db, rid).status in queries.ACTIVE
+        _wait(lambda: _run(db, rid).status == "suspended", "the run suspended under worker B", logs)
         a.send_signal(signal.SIGCONT)
         woken = time.monotonic()
         _wait(lambda: "leaving the run loop" in logs[0].read_text(), "worker A leaving its run loop", logs)
+        services.stop(a)
+        assert _run(db, rid).status == "suspended"    # B's run still held when A left
+        left = time.monotonic()
+        _wait(lambda: any(e.link == "modbus_rtu" and e.mono >= left for e in sim.received()),
+              "worker B reading the chamber after A left", logs)
+        chamber = sim.chamber_model
+        chamber.inject_alarm(0)                      # condition gone; acknowledged once the air is in band
+        _wait(lambda: chamber.clear_alarm() or chamber.alarm == 0, "the chamber alarm cleared", logs)
         run = _wait(lambda: (r := _run(db, rid)).status in queries.TERMINAL and r, "the run to end", logs)
         assert run.status == "completed", (run.status, run.error)
         assert run.worker == b_id and run.error is None
-        assert active_at_wake, "B had finished before A woke: the drill did not test a wake during B's run"
         received = sim.received()
         a_links = {e.link for e in received if e.mono < b_started}
         b_links = {e.link for e in received if b_started <= e.mono < woken} - a_links
@@ -116,6 +179,7 @@ def test_sigstop_owner_past_its_lease_then_sigcont_sends_nothing_and_the_run_com
             assert first_index == expected
             expected += count
         assert expected > 0 and "worker_takeover" in kinds and "run_failed" not in kinds
+        assert "suspended" in kinds and "unsuspended" in kinds
     finally:
         for proc in (a, b):
             if proc is not None and proc.poll() is None:

@@ -165,8 +165,10 @@ class SqlRunStore:
             run = self._owned(s, rid)
             if run.checkpoint is not None:
                 raise StorageError(f"run {rid} has already started (status {run.status}); resume it instead")
-            if run.status not in (RunStatus.QUEUED.value, RunStatus.RUNNING.value):
-                raise InvalidTransition(f"run {rid} is {run.status!r}; only a queued run can start")
+            # a run taken over before its first checkpoint starts again, whatever active state its
+            # previous worker had left (e.g. suspended on a chamber alarm from its first reading)
+            if run.status != RunStatus.QUEUED.value and run.status not in queries.ACTIVE:
+                raise InvalidTransition(f"run {rid} is {run.status!r}; only a queued or active run can start")
             live = dict(run.live or {})
             live.update(plan=plan, summary=summary, started_t=t)
             run.live = jsonable(live)

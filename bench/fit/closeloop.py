@@ -34,10 +34,10 @@ import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
-from bench.fit.closeloop_search import (BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
+from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability
-from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, fit_noise_model
+from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, coefficient_spread, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
@@ -181,7 +181,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
     # slow structure still in that residual reads as flicker)
     r_declared = y_train - design.train @ lstsq(design.train, y_train)
-    model_start = fit_noise_model([(r_declared, sample_period(t_tr))])
+    model_start = fit_noise_model([(r_declared, sample_period(t_tr), t_tr)])
     floor_start = model_start.floor(t_tr[-1] - t_tr[0], mus=WHITE_MUS)
     # lag-1 autocorrelation of 100-s means of that noise: 1 - ADEV(100 s)^2 / floor^2 (0 for white)
     full = model_start.floor(t_tr[-1] - t_tr[0])
@@ -194,7 +194,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         # once effects are in, the residual's own noise floor (flicker included) is the target
         Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
         r = y_train - Xt @ lstsq(Xt, y_train)
-        fl = fit_noise_model([(r, sample_period(t_tr))]).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
+        fl = fit_noise_model([(r, sample_period(t_tr), t_tr)]).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
         return STOP_RATIO * fl if np.isfinite(fl) else np.inf
 
     chosen, steps = search(problem, stop_std100=stop, stop_at=stop_at)
@@ -244,11 +244,14 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     before = _errors(r_tr0, r_va0, r_dep0, t_tr, t_va, in_range)
     after = _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range)
 
-    # noise floor from the final residuals at short taus
+    # noise floor from the final residuals at short taus; on the validation run it also carries the
+    # error the training noise put into the fitted coefficients (a model of the true form has it too)
     va_in = np.where(diag, r_va, np.nan)
-    model = fit_noise_model([(r_tr, sample_period(t_tr)), (va_in, sample_period(t_va))])
+    model = fit_noise_model([(r_tr, sample_period(t_tr), t_tr), (va_in, sample_period(t_va), t_va)])
     n_in_blocks = int(np.sum(np.isfinite(block_means(t_va, {"r": va_in}, BLOCK_S).columns["r"])))
-    floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S)
+    spread = _coefficient_spread(model, problem, kept_t, stack(kept_t, design.validate, inputs_va),
+                                 diag & np.isfinite(r_va), t_va)
+    floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S, spread=spread)
     floor_tr = model.floor(t_tr[-1] - t_tr[0])
     floor = floor_val["noise_floor_dph"]
     structure = {"train": describe_structure(r_tr, t_tr, floor_tr["noise_floor_dph"]),
@@ -279,7 +282,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                  "method": "Allan variance of the final residuals (train + in-range validation) fitted "
                            "with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
                            "out of the floor) at taus <= %.0f s; expected std of 100-s means over the "
-                           "in-range validation record (Barnes B1); 90 %% sampling interval" % model.tau_max_s}
+                           "in-range validation record (Barnes B1) plus the spread the training noise puts "
+                           "into the fitted coefficients (B G B' under the same noise terms); 90 %% "
+                           "sampling interval" % model.tau_max_s}
     report = {
         "declared_model": declared_name,
         "declared_terms": list(design.names),
@@ -313,11 +318,27 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     return report
 
 
+def _coefficient_spread(model, problem: SearchProblem, kept, X_val: np.ndarray, judged: np.ndarray,
+                        t_va: np.ndarray):
+    """``noisefloor.coefficient_spread`` of the final design: its TRAIN evidence blocks (numbered by
+    time, so outages keep their lags) against its block means on the judged validation part."""
+    from bench.fit.metrics import window_means
+
+    Xb = problem.design(kept)
+    tb = block_means(problem.fine.time, {"t": problem.fine.time}, BLOCK_S).columns["t"]
+    index = np.round((tb - tb[0]) / BLOCK_S)
+    rows = problem.rows & np.all(np.isfinite(Xb), axis=1)
+    V = np.column_stack([window_means(t_va, np.where(judged, X_val[:, j], np.nan), BLOCK_S)
+                         for j in range(X_val.shape[1])])
+    return coefficient_spread(model, Xb[rows], index[rows], V)
+
+
 def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) -> list[dict[str, Any]]:
     """Per kept effect: terms, coefficients, its training evidence with the others present, and the
     in-range validation std100 after adding the effects up to it (in the order chosen)."""
     out = []
     step_ev = {lab: s["evidence"] for s in steps if "evidence" in s for lab in s["after_joint_refit"]}
+    step_ev.update({fam: s["evidence"] for s in steps if "evidence" in s for fam in s.get("added_families", [])})
     beta = fit(kept)[0]
     offset = problem.Xb.shape[1]
     for i, e in enumerate(kept):
@@ -325,16 +346,19 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) ->
         base = problem.score(others, with_cv=True)
         ev = gates(problem, base, problem.score(others + (e,), with_cv=True), (e,))
         ev.pop("passed", None)
-        first = step_ev.get(e.label, {})
+        first = step_ev.get(e.family.label) or step_ev.get(e.label, {})
         if first.get("runner_up") is not None:
             ev["runner_up"] = first["runner_up"]
             ev["bic_margin_to_runner_up"] = first.get("bic_margin_to_runner_up")
+        # candidates the training run could not tell from this one: named, never settled by validation
+        ambiguous = first.get("ambiguous_with", [])
         cols = list(e.columns(problem.fine).keys())
         start = offset + sum(len(k.columns(problem.fine)) for k in kept[:i])
         val_upto = std100(np.where(in_range, fit(kept[: i + 1])[2], np.nan), t_va)
         out.append({"kind": e.kind, "params": e.params, "terms": cols,
                     "coefficients": {nm: float(beta[start + j]) for j, nm in enumerate(cols)},
-                    "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised"})
+                    "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised",
+                    "ambiguous_with": ambiguous})
     return out
 
 
@@ -377,11 +401,13 @@ def _findings(r: dict[str, Any]) -> str:
                      + _cv_text(ev)
                      + "; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
-        runner = ev.get("runner_up")
-        if runner and ev.get("bic_margin_to_runner_up") is not None and ev["bic_margin_to_runner_up"] < 6.0:
-            lines.append(f"   {runner['kind']} ({', '.join(f'{k}={v}' for k, v in runner['params'].items())}) "
-                         "explains this residual almost as well: this data cannot tell the two apart; a run "
-                         "with a different ramp pattern would.")
+        if e.get("ambiguous_with"):
+            alts = "; ".join(f"{a['kind']} ({', '.join(f'{k}={v}' for k, v in a['params'].items())}, delta-BIC "
+                             f"{a['bic_margin']:.1f} behind)" for a in e["ambiguous_with"])
+            lines.append(f"   Ambiguous on the training run: {alts} explains this residual almost as well "
+                         f"(less than {AMBIGUOUS_DBIC:.0f} in BIC): this data cannot tell them apart; the "
+                         "validation run only confirms the choice, it does not make it; a run with a "
+                         "different ramp pattern would decide.")
     for e in r["effects_not_generalised"]:
         params = ", ".join(f"{k}={v}" for k, v in e["params"].items())
         if not np.isfinite(e["validation_std100_with_dph"]):
@@ -494,6 +520,7 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
     report: dict[str, Any] = {"model": model, "latitude_deg": latitude_deg, "block_s": BLOCK_S,
                               "thresholds": {"hac_p_max": P_MAX, "delta_bic_min": DBIC_MIN,
                                              "min_cv_gain": MIN_CV_GAIN, "max_effects": MAX_EFFECTS,
+                                             "ambiguous_delta_bic": AMBIGUOUS_DBIC,
                                              "at_floor_ratio": AT_FLOOR_RATIO},
                               "channels": {}}
     for ch in channels:

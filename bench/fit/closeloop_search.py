@@ -48,6 +48,9 @@ PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 SWAP_DBIC = 2.0
+# two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:
+# below 6 the evidence for one over the other is at most "positive", never "strong")
+AMBIGUOUS_DBIC = 6.0
 # why blocked cross-validation cannot judge an effect (then the validation run does)
 CV_CONFINED = "the effect lies within one training segment"
 CV_OUT_OF_RANGE = "the effect lies where no training segment can be scored inside the others' range"
@@ -310,13 +313,19 @@ class _Projector:
         if not np.all(np.isfinite(Zo)):
             return None
         Zr = Zo - self.q @ (self.q.T @ Zo)
-        norms = np.sqrt(np.sum(Zr ** 2, axis=0))
-        keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.sum(Zo ** 2))))
+        norms = np.sqrt(np.einsum("ij,ij->j", Zr, Zr))
+        keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.einsum("ij,ij->", Zo, Zo))))
         if not keep.any():
             return float(self.yr @ self.yr)
-        b, *_ = np.linalg.lstsq(Zr[:, keep] / norms[keep], self.yr, rcond=1e-10)
-        r = self.yr - (Zr[:, keep] / norms[keep]) @ b
-        return float(r @ r)
+        W = Zr[:, keep] / norms[keep]
+        # the few added columns: their own small Gram matrix (eigen-decomposed, rank-revealing like
+        # the pseudo-inverse) instead of a general least-squares call per candidate
+        g = W.T @ W
+        c = W.T @ self.yr
+        lam, v = np.linalg.eigh(g)
+        good = lam > lam[-1] * 1e-10
+        proj = v[:, good].T @ c
+        return max(float(self.yr @ self.yr - np.sum(proj ** 2 / lam[good])), 0.0)
 
 
 def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -461,8 +470,13 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         runner = next((r for r in passing if r is not pick and r[0][0].family != move[0].family), None)
         ev["runner_up"] = _describe(runner[0][0], runner[2]) if runner else None
         ev["bic_margin_to_runner_up"] = float(bic[id(runner)] - bic[id(pick)]) if runner else None
+        picked = {m.family for m in move}
+        ev["ambiguous_with"] = [{**_describe(r[0][0], r[2]), "bic_margin": float(bic[id(r)] - bic[id(pick)])}
+                                for r in passing if r is not pick and r[0][0].family not in picked
+                                and bic[id(r)] - bic[id(pick)] < AMBIGUOUS_DBIC]
         chosen = problem.refit_jointly(chosen + move)
-        steps.append({"added": [e.label for e in move], "evidence": ev, "train_std100_before_step": left,
+        steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
+                      "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
     return prune(problem, chosen, steps), steps
 

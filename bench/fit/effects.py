@@ -40,7 +40,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.signal import block_means, orientation_axes_per_sample, temperature_rate
+from bench.signal import block_means, linear_recurrence, orientation_axes_per_sample, temperature_rate
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -80,7 +80,10 @@ class Inputs:
 
     @property
     def dt(self) -> float:
-        return sample_period(self.time)
+        got = self.__dict__.get("_dt")
+        if got is None:
+            got = self.__dict__["_dt"] = sample_period(self.time)
+        return got
 
     def rate(self, probe: str, window_s: float) -> np.ndarray:
         """dT/dt (C/min) of a probe through a filter of ``window_s`` (cached per window)."""
@@ -206,13 +209,18 @@ def sample_period(time_s: np.ndarray) -> float:
 
 
 def first_order_lag(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Output of a first-order lag (time constant tau) driven by x, started in equilibrium at x[0].
-    Exact discretisation for a uniform sample period (the median period of the data); missing input
-    samples are held at the previous value."""
+    """Output of a first-order lag (time constant tau) driven by x, started in equilibrium at x[0]:
+    y[i] = a y[i-1] + (1 - a) x[i], a = exp(-dt[i] / tau) with each sample's own step (a logger outage
+    is a long step, not one sample period).  Missing input samples are held at the previous value."""
     x = np.asarray(x, dtype=np.float64)
     if not np.all(np.isfinite(x)):
         x = _hold_missing(x)
-    dt = sample_period(time_s)
+    t = np.asarray(time_s, dtype=np.float64)
+    dt = sample_period(t)
+    steps = np.diff(t)
+    if len(steps) and np.max(np.abs(steps - dt)) > 0.5 * dt:
+        a = np.exp(-np.concatenate([[dt], steps]) / tau_s)
+        return linear_recurrence(a, (1.0 - a) * x, float(x[0]))
     a = np.exp(-dt / tau_s)
     from scipy.signal import lfilter   # scipy.signal takes seconds to import: only when used
 
@@ -253,13 +261,7 @@ def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float)
     saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks."""
     dT = np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0
     a = np.exp(-np.abs(dT) / width_c)
-    drive = (1.0 - a) * np.sign(dT)
-    out = np.empty(len(dT))
-    m = 0.0
-    for i, (ai, di) in enumerate(zip(a.tolist(), drive.tolist())):
-        m = ai * m + di
-        out[i] = m
-    return out
+    return linear_recurrence(a, (1.0 - a) * np.sign(dT), 0.0)
 
 
 def time_since_power_on(ds: Dataset) -> np.ndarray:

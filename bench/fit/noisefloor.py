@@ -52,7 +52,6 @@ WHITE_MUS = (-2.0, -1.0)
 TAU_MAX_S = 1100.0
 INTERVAL = 0.90
 LIMIT_P = 0.01
-MAX_EDF_BLOCKS = 2000      # the edf's m x m covariance is built for at most this many blocks
 
 
 def _structure_ratio(k: np.ndarray, mu: float) -> np.ndarray:
@@ -72,18 +71,23 @@ def _structure_ratio(k: np.ndarray, mu: float) -> np.ndarray:
 
 def block_means_edf(m: int, allan_parts: dict[float, float]) -> float:
     """Satterthwaite degrees of freedom of the sample variance of ``m`` consecutive block means of a
-    sum of power-law noises (``allan_parts``: mu -> its Allan variance at the block length)."""
+    sum of power-law noises (``allan_parts``: mu -> its Allan variance at the block length).
+
+    With G the Toeplitz matrix g(|i-j|) = -D(|i-j|)/2 and P = 11'/m, C = (I-P) G (I-P): tr(C) =
+    m g(0) - s/m and tr(C^2) = tr(G^2) - 2 |G1|^2 / m + (s/m)^2 with s = 1'G1 -- all O(m) from the
+    lag sums of a Toeplitz matrix, no m x m matrix."""
     m = int(max(m, 2))
-    lags = np.abs(np.arange(m)[:, None] - np.arange(m)[None, :])
-    by_lag = np.zeros(m)
+    g = np.zeros(m)
     for mu, avar in allan_parts.items():
         if avar > 0:
-            by_lag -= avar * _structure_ratio(np.arange(m), mu)   # -D/2 per lag, D(1) = 2 AVAR
-    g = by_lag[lags]
-    c = g - g.mean(axis=0, keepdims=True)
-    c = c - c.mean(axis=1, keepdims=True)                   # A G A
-    tr = float(np.trace(c))
-    tr2 = float(np.sum(c * c))
+            g -= avar * _structure_ratio(np.arange(m), mu)    # -D/2 per lag, D(1) = 2 AVAR
+    cg = np.cumsum(g)
+    i = np.arange(m)
+    rows = cg[i] + cg[m - 1 - i] - g[0]                       # G1: row sums of the Toeplitz matrix
+    s = float(rows.sum())
+    counts = np.concatenate([[m], 2.0 * (m - np.arange(1, m))])
+    tr = m * g[0] - s / m
+    tr2 = float(np.sum(counts * g ** 2)) - 2.0 * float(rows @ rows) / m + (s / m) ** 2
     return tr * tr / tr2 if tr2 > 0 else float(m - 1)
 
 
@@ -107,9 +111,13 @@ class NoiseModel:
     def allan_var(self, tau: float, mus=NOISE_MUS) -> float:
         return float(sum(self.coef.get(mu, 0.0) * tau ** mu for mu in mus))
 
-    def floor(self, record_s: float, block_s: float = BLOCK_S, mus: tuple[float, ...] = NOISE_MUS) -> dict[str, Any]:
+    def floor(self, record_s: float, block_s: float = BLOCK_S, mus: tuple[float, ...] = NOISE_MUS,
+              spread: "CoefficientSpread | None" = None) -> dict[str, Any]:
         """Expected std of ``block_s`` means over ``record_s`` seconds, with its interval (``mus``: the
-        noise terms counted; the white-only floor, ``mus=WHITE_MUS``, is a lower bound)."""
+        noise terms counted; the white-only floor, ``mus=WHITE_MUS``, is a lower bound).  With
+        ``spread`` (a model fitted on another run and judged on this one), the variance the training
+        noise put into the fitted coefficients is added, the degrees of freedom combined
+        (Satterthwaite)."""
         m = max(2.0, np.floor(record_s / block_s))
         parts = {mu: self.coef.get(mu, 0.0) * block_s ** mu * barnes_b1(m, mu) for mu in mus}
         var = float(sum(parts.values()))
@@ -117,14 +125,17 @@ class NoiseModel:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")], "edf": 0.0,
                     "blocks": int(m)}
         allan_100 = sum(self.coef.get(mu, 0.0) * block_s ** mu for mu in mus)
-        # beyond MAX_EDF_BLOCKS the edf of that many blocks is used: a lower bound (wider interval)
-        edf = max(1.0, block_means_edf(int(min(m, MAX_EDF_BLOCKS)),
-                                       {mu: self.coef.get(mu, 0.0) * block_s ** mu for mu in mus}))
+        edf = max(1.0, block_means_edf(int(m), {mu: self.coef.get(mu, 0.0) * block_s ** mu for mu in mus}))
+        noise_var = var
+        if spread is not None and spread.variance > 0:
+            var = noise_var + spread.variance
+            edf = var ** 2 / (noise_var ** 2 / edf + spread.variance ** 2 / spread.edf)
         lo = np.sqrt(var * chi2.ppf((1 - INTERVAL) / 2, edf) / edf)
         hi = np.sqrt(var * chi2.ppf((1 + INTERVAL) / 2, edf) / edf)
         limit = np.sqrt(var * chi2.ppf(1 - LIMIT_P, edf) / edf)
         return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(lo), float(hi)],
-                "limit_dph": float(limit), "edf": float(edf),
+                "limit_dph": float(limit), "edf": float(edf), "noise_only_dph": float(np.sqrt(noise_var)),
+                "coefficient_spread_dph": float(np.sqrt(spread.variance)) if spread is not None else 0.0,
                 "blocks": int(m), "adev100_dph": float(np.sqrt(max(allan_100, 0.0))),
                 "flicker_share": float(parts.get(0.0, 0.0) / var)}
 
@@ -138,6 +149,53 @@ class NoiseModel:
                 "tau_max_s": float(self.tau_max_s)}
 
 
+@dataclass
+class CoefficientSpread:
+    """What the training noise adds to a validation std of block means through the fitted
+    coefficients: a model of the true form, fitted on a noisy run, still errs by X_val (b - beta).
+    ``variance`` is the expected contribution to the sample variance of the validation block means,
+    ``edf`` its Satterthwaite degrees of freedom (at most the number of coefficients)."""
+
+    variance: float
+    edf: float
+
+
+def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index: np.ndarray,
+                       validate_blocks: np.ndarray, block_s: float = BLOCK_S) -> CoefficientSpread:
+    """Under the fitted noise, the training block means' covariance is G (g(|i-j|) = -D(|i-j|)/2 from
+    each power law's structure function, up to a constant the intercept absorbs), so the least-squares
+    coefficients b = B y (B = pinv(X)) spread with Sigma = B G B'.  With S the covariance of the
+    centred validation design's block means, E[extra sample variance] = tr(Sigma S) and edf =
+    tr(Sigma S)^2 / tr((Sigma S)^2).  ``train_blocks``: (n, k) block means of the design on TRAIN
+    (intercept included), ``block_index``: each block's number from the run's start (gaps keep their
+    lag), ``validate_blocks``: the same design's block means on the validation part judged."""
+    X = np.asarray(train_blocks, dtype=np.float64)
+    idx = np.asarray(block_index, dtype=np.float64)
+    ok = np.all(np.isfinite(X), axis=1)
+    X, idx = X[ok], idx[ok]
+    V = np.asarray(validate_blocks, dtype=np.float64)
+    V = V[np.all(np.isfinite(V), axis=1)]
+    if len(X) <= X.shape[1] or len(V) < 2:
+        return CoefficientSpread(0.0, 1.0)
+    lags = np.abs(idx[:, None] - idx[None, :])
+    g = np.zeros(lags.shape)
+    for mu in NOISE_MUS:
+        avar = model.coef.get(mu, 0.0) * block_s ** mu
+        if avar > 0:
+            g -= avar * _structure_ratio(lags, mu)
+    scale = np.sqrt(np.mean(X ** 2, axis=0))
+    scale[~(scale > 0)] = 1.0
+    B = np.linalg.pinv(X / scale) / scale[:, None]
+    sigma = B @ g @ B.T
+    Vc = V - V.mean(axis=0)
+    P = sigma @ (Vc.T @ Vc / (len(Vc) - 1))
+    e = float(np.trace(P))
+    e2 = float(np.trace(P @ P))
+    if not (e > 0 and e2 > 0):
+        return CoefficientSpread(0.0, 1.0)
+    return CoefficientSpread(e, max(1.0, e * e / e2))
+
+
 def _oadev_octave(x: np.ndarray, dt: float, tau_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Overlapping Allan variance (``bench.signal.allan_deviation``) at octave multiples of dt up to
     tau_max: (taus, variances, number of terms)."""
@@ -148,22 +206,42 @@ def _oadev_octave(x: np.ndarray, dt: float, tau_max: float) -> tuple[np.ndarray,
     return res.taus_s, res.adev ** 2, res.n
 
 
-def fit_noise_model(residuals: list[tuple[np.ndarray, float]], tau_max_s: float = TAU_MAX_S) -> NoiseModel:
-    """Fit the power laws to the pooled Allan variance of one or more residual series (each given
-    with its sample period).  Series are pooled per tau, weighted by their number of terms."""
+def contiguous_pieces(x: np.ndarray, dt: float, time_s: np.ndarray | None = None) -> list[np.ndarray]:
+    """The stretches of ``x`` with every sample finite and (with ``time_s``) no step longer than 1.5
+    sample periods: an Allan difference across a missing stretch or a logger outage is not a
+    difference over tau, so each stretch is its own series."""
+    x = np.asarray(x, dtype=np.float64)
+    cut = ~np.isfinite(x)
+    breaks = np.zeros(len(x), dtype=bool)
+    if time_s is not None and len(x) > 1:
+        breaks[1:] = np.diff(np.asarray(time_s, dtype=np.float64)) > 1.5 * dt
+    label = np.cumsum(breaks | np.concatenate([[False], cut[:-1] != cut[1:]]))
+    out = []
+    for lab in np.unique(label[~cut]):
+        piece = x[(label == lab) & ~cut]
+        out.append(piece)
+    return out
+
+
+def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> NoiseModel:
+    """Fit the power laws to the pooled Allan variance of one or more residual series, each given as
+    (values, sample period) or (values, sample period, time_s).  Each series is cut into its
+    contiguous finite stretches (``contiguous_pieces``); stretches are pooled per tau, weighted by
+    their number of terms."""
     pooled: dict[float, list[float]] = {}
-    for x, dt in residuals:
-        x = np.asarray(x, dtype=np.float64)
-        x = x[np.isfinite(x)]
-        if len(x) < 16:
-            continue
-        tmax = min(tau_max_s, len(x) * dt / 8.0)
-        taus, avar, n = _oadev_octave(x, dt, tmax)
-        for tau, v, k in zip(taus, avar, n):
-            key = round(float(tau), 6)
-            acc = pooled.setdefault(key, [0.0, 0.0])
-            acc[0] += v * k
-            acc[1] += k
+    for item in residuals:
+        x, dt = item[0], item[1]
+        t = item[2] if len(item) > 2 else None
+        for piece in contiguous_pieces(x, dt, t):
+            if len(piece) < 16:
+                continue
+            tmax = min(tau_max_s, len(piece) * dt / 8.0)
+            taus, avar, n = _oadev_octave(piece, dt, tmax)
+            for tau, v, k in zip(taus, avar, n):
+                key = round(float(tau), 6)
+                acc = pooled.setdefault(key, [0.0, 0.0])
+                acc[0] += v * k
+                acc[1] += k
     if not pooled:
         raise ValueError("noise floor: the residual is too short for an Allan deviation")
     taus = np.array(sorted(pooled))

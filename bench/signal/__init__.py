@@ -8,6 +8,8 @@ and engine code share.  Pure functions over numpy arrays; units in every docstri
 * ``allan``: ``allan_deviation`` (one NaN policy, ``MIN_ALLAN_SAMPLES``).
 * ``stats``: ``lag1_autocorrelation``, ``newey_west_lags``, ``ols_hac`` -> ``HacFit``, ``hac_wald_test``
   (chi2), ``ljung_box``.
+* ``recurrence``: ``linear_recurrence`` (y[i] = a[i] y[i-1] + b[i], vectorised: lags on irregular time
+  axes, hysteresis memories).
 * ``lstsq``: ``lstsq`` (column-equilibrated, rows with a non-finite value dropped) -> ``LinearFit``.
 * ``geometry``: orientation codes, ``EARTH_RATE_DPH``, ``earth_rate_enu`` / ``earth_rate_body``.
 """
@@ -35,6 +37,7 @@ from bench.signal.rate import (
     smoothed_temperature_and_rate,
     temperature_rate,
 )
+from bench.signal.recurrence import linear_recurrence
 from bench.signal.segments import BlockMeans, BlockPlan, block_means, run_segments
 from bench.signal.stats import (
     HacFit,
@@ -53,7 +56,7 @@ __all__ = [
     "EIGHT_POSITIONS", "HacFit", "LinearFit", "MIN_ALLAN_SAMPLES", "OrientationError", "RATE_METHODS", "WaldTest",
     "allan_deviation", "bic", "block_means", "check_rate_method", "code_matrix", "column_scale",
     "earth_rate_body", "earth_rate_body_per_sample", "earth_rate_enu", "finite_rows", "hac_wald_test",
-    "lag1_autocorrelation", "ljung_box", "lstsq", "newey_west_lags", "ols_hac", "orientation_axes",
+    "lag1_autocorrelation", "linear_recurrence", "ljung_box", "lstsq", "newey_west_lags", "ols_hac", "orientation_axes",
     "orientation_axes_per_sample", "run_segments", "smoothed_temperature", "smoothed_temperature_and_rate",
     "temperature_rate", "validate_canonical_code", "validate_code",
 ]

@@ -7,6 +7,9 @@ interval between them in bench seconds.
 Probes count read cycles (one time stamp per read of the whole bus; ``per_probe`` has the valid
 readings of each probe); the gyro counts stored frames (intervals between consecutive frame times,
 so a link gap shows as ``max_interval_s``).  Intervals are None with fewer than two readings.
+
+A multi-gyro run (the parent, which stores the chamber, table and supply) also has ``units``: for each
+fixture slot, the probes and gyro frames its gyro's run stored, as above.
 """
 from __future__ import annotations
 
@@ -18,7 +21,7 @@ import numpy as np
 from sqlalchemy import select
 
 from bench.storage.db import Database
-from bench.storage.models import FrameChunk, ProbeReadingRow, Telemetry
+from bench.storage.models import FrameChunk, ProbeReadingRow, Run, Telemetry
 from bench.storage import codec
 
 TELEMETRY_DEVICES = ("chamber", "turntable", "psu")
@@ -54,6 +57,18 @@ def sampling_summary(db: Database, run_id: int, *, max_age_s: float = 0.0) -> di
 
 
 def _summary(db: Database, run_id: int) -> dict[str, Any]:
+    out = _own_summary(db, run_id)
+    with db.engine.connect() as conn:
+        units = conn.execute(select(Run.slot, Run.id).where(Run.parent_id == run_id).order_by(Run.slot)).all()
+    if units:
+        out["units"] = {}
+        for slot, child_id in units:
+            child = _own_summary(db, child_id)
+            out["units"][slot] = {"probes": child["probes"], "gyro": child["gyro"]}
+    return out
+
+
+def _own_summary(db: Database, run_id: int) -> dict[str, Any]:
     out: dict[str, Any] = {}
     with db.engine.connect() as conn:
         rows = conn.execute(select(ProbeReadingRow.t, ProbeReadingRow.name, ProbeReadingRow.celsius)

@@ -16,7 +16,7 @@ import numpy as np
 
 from bench.fit.base import Dataset
 from tests.corpus import effects as fx
-from tests.corpus.generator import (ChannelSpec, RunPlan, declared_probes, formula_text, make_run,
+from tests.corpus.generator import (ChannelSpec, Recording, RunPlan, declared_probes, formula_text, make_run,
                                     Unit, random_unit)
 
 EXPLAINED = frozenset({"explained"})
@@ -68,12 +68,29 @@ class Case:
     hidden_validate: dict[str, np.ndarray]
     floors: dict[str, float]
     probe_nodes: dict[str, str]              # where each probe is glued (coil_x/y/z, base or case)
+    full: dict[str, tuple[Dataset, Recording]]   # per run: the 1-s data and how the logger recorded it
 
     def oracle_columns(self, channel: str, which: str) -> np.ndarray:
-        """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data."""
-        ds, hidden = (self.train, self.hidden_train) if which == "train" else (self.validate, self.hidden_validate)
+        """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data, from what
+        the logger recorded: its probe readings interpolated onto the physics' 1-s grid (straight
+        through an outage: what happened there is not recorded) and its power readings held, the
+        effect computed there and recorded
+        as the gyro is (averaged over each logger period, outages left out)."""
+        hidden = self.hidden_train if which == "train" else self.hidden_validate
+        full, rec = self.full[which]
+        recorded = self.train if which == "train" else self.validate
+        ds = full
+        if not rec.identity:
+            cols = {p: np.interp(full.time, recorded.time, np.asarray(recorded[p], dtype=float))
+                    for p in full.columns if p.startswith("temp_")}
+            # the power switch as recorded: each reading holds until the next one
+            last = np.clip(np.searchsorted(recorded.time, full.time, side="right") - 1, 0, len(recorded) - 1)
+            cols["power"] = np.asarray(recorded["power"], dtype=float)[last]
+            ds = full.with_columns(**cols)
         cols = [e.oracle(ds, hidden, channel) for e in self.truth[channel].effects]
-        return np.column_stack(cols) if cols else np.zeros((len(ds), 0))
+        if not cols:
+            return np.zeros((rec.n_rows, 0))
+        return rec.mean(np.column_stack(cols))
 
 
 # ------------------------------------------------------------------------------------------ plans
@@ -89,7 +106,8 @@ def _validate_plan(train: RunPlan, rng, **kw) -> RunPlan:
     base = dict(duration_s=VALIDATE_S, tmin_c=train.tmin_c + float(rng.uniform(0, 5)),
                 tmax_c=train.tmax_c - float(rng.uniform(0, 5)), rate_range=(0.5, 2.0),
                 power_cycles=train.power_cycles, positions=train.positions,
-                table_rates_dps=train.table_rates_dps, humidity=train.humidity, board_load=train.board_load)
+                table_rates_dps=train.table_rates_dps, humidity=train.humidity, board_load=train.board_load,
+                record_period_s=train.record_period_s, outages=train.outages, bias_step=train.bias_step)
     base.update(kw)
     return RunPlan(**base)
 
@@ -159,8 +177,8 @@ def _build(case_class: str, seed: int, rng, unit: Unit, specs: list[ChannelSpec]
            validate_plan: RunPlan) -> Case:
     lat = float(rng.uniform(-60, 60))
     meta = {"gyro_id": f"CORPUS-{case_class}-{seed}", "gyro_type": "FOG"}
-    train, st_tr, floors = make_run(train_plan, unit, specs, rng, lat, 0, meta)
-    validate, st_va, _ = make_run(validate_plan, unit, specs, rng, lat, 1, meta)
+    train, st_tr, floors, full_tr, rec_tr = make_run(train_plan, unit, specs, rng, lat, 0, meta)
+    validate, st_va, _, full_va, rec_va = make_run(validate_plan, unit, specs, rng, lat, 1, meta)
     truth = {s.channel: ChannelTruth(s.channel, formula_text(s.declared), s.declared,
                                      [e for e, _ in s.effects], s.verdicts,
                                      [unit.effect_coef[(s.channel, i)] for i in range(len(s.effects))],
@@ -169,7 +187,8 @@ def _build(case_class: str, seed: int, rng, unit: Unit, specs: list[ChannelSpec]
                                      [unit.effect_lookalikes[(s.channel, i)] for i in range(len(s.effects))])
              for s in specs}
     return Case(case_class, seed, train, validate, truth, st_tr.hidden, st_va.hidden,
-                {s.channel: floors[s.channel] for s in specs}, dict(unit.probe_nodes))
+                {s.channel: floors[s.channel] for s in specs}, dict(unit.probe_nodes),
+                {"train": (full_tr, rec_tr), "validate": (full_va, rec_va)})
 
 
 def _single(case_class: str, seed: int, kinds: list[str] | Callable, *, channel: str | None = None,
@@ -210,6 +229,14 @@ LIBRARY_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_c
                  "g_sensitivity", "scale_factor_temperature", "time_drift")
 PAIRABLE = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",
             "time_drift")
+
+
+PROBE_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis")
+
+
+def _one_of(kinds: tuple[str, ...], salt: int) -> Callable:
+    """A class's effect kind drawn per seed (the same seed, the same kind)."""
+    return lambda s: [str(np.random.default_rng([salt, s]).choice(kinds))]
 
 
 def _mode_hop(rng, unit, ch):
@@ -271,6 +298,25 @@ CLASSES: dict[str, Callable[[int], Case]] = {
         effect_factory=lambda rng, unit, ch: [fx.InternalNode()]),
     "unrecorded_mode_hop": lambda s: _single(
         "unrecorded_mode_hop", s, [], verdicts=UNEXPLAINED, effect_factory=_mode_hop),
+    # the logger at another rate: one row every 10 s, the gyro averaged over it
+    "effect_sampled_10s": lambda s: _single(
+        "effect_sampled_10s", s, _one_of(PAIRABLE, 11)(s), train_kw=dict(record_period_s=10.0)),
+    # logger outages (rows missing, 5-40 min each) in both runs
+    "effect_with_logger_gaps": lambda s: _single(
+        "effect_with_logger_gaps", s, _one_of(PAIRABLE, 12)(s), train_kw=dict(outages=True)),
+    # a validation run far shorter than the training run (1.5-2.5 h against 10 h), with a real effect
+    "effect_short_validation": lambda s: _single(
+        "effect_short_validation", s, _one_of(PAIRABLE, 13)(s),
+        validate_kw=dict(duration_s=float(np.random.default_rng([13, s]).uniform(5400, 9000)),
+                         soak_range_s=(900, 1800))),
+    # two effects, each through its own probe (neither the channel's own)
+    "two_probe_effects": lambda s: _single(
+        "two_probe_effects", s, lambda rng: [str(k) for k in rng.choice(PROBE_KINDS, 2, replace=False)],
+        ratio=(4.0, 8.0)),
+    # a bias step at a random time of each run, not driven by temperature: must come out unexplained
+    "unrecorded_bias_step": lambda s: _single(
+        "unrecorded_bias_step", s, [], verdicts=UNEXPLAINED, train_kw=dict(bias_step=True),
+        effect_factory=lambda rng, unit, ch: [fx.BiasStep()]),
 }
 
 

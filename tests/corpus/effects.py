@@ -9,7 +9,7 @@
 
 Kinds use the product's names (thermal_lag, gradient, rate, rate_squared, temp_rate_cross,
 hysteresis, warmup, g_sensitivity, scale_factor_temperature, time_drift); the unrecorded ones are
-named for what they are (humidity, internal_node, mode_hop).
+named for what they are (humidity, internal_node, mode_hop, bias_step).
 """
 from __future__ import annotations
 
@@ -221,6 +221,20 @@ class InternalNode(Effect):
 
     def signal(self, run, channel):
         return run.hidden["board_self_heating_c"]
+
+    def oracle(self, ds, hidden, channel):
+        return hidden[self.kind][:, None]
+
+
+class BiasStep(Effect):
+    """A step in the bias at a random time of each run, not driven by temperature (a shock, a contact
+    settling): nothing recorded explains it."""
+
+    def __init__(self):
+        super().__init__("bias_step", explainable=False)
+
+    def signal(self, run, channel):
+        return run.hidden["bias_step"]
 
     def oracle(self, ds, hidden, channel):
         return hidden[self.kind][:, None]

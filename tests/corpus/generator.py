@@ -2,7 +2,9 @@
 TRAIN run and a VALIDATE run, with true effects hidden in the bias of the channel(s) under test.
 
 The unit's physics (network, probe offsets, bias polynomials, effect coefficients, noise levels) is
-drawn once per case; each run has its own chamber program, noise and hidden-variable draws.  An
+drawn once per case; the physics runs at 1 s and the data logger records it (``Recording``): every
+``record_period_s`` one row with the gyro averaged over the period (an integrating rate output) and the
+other columns read at the period's middle sample; logger outages drop whole rows; each run has its own chamber program, noise and hidden-variable draws.  An
 effect's coefficient is set from its visible size on TRAIN: the std of its signal after removing what
 the declared model can absorb, as a multiple (``ratio``) of the TRAIN noise floor (std of 100-s means
 of the gyro noise).
@@ -35,6 +37,69 @@ class RunPlan:
     table_rates_dps: tuple[float, ...] = ()            # table rates visited in turn
     humidity: bool = False
     board_load: bool = False
+    record_period_s: float = DT                        # the logger's sample period
+    outages: bool = False                              # 2-4 logger outages of 5-40 min (rows missing)
+    bias_step: bool = False                            # a bias step at a random time (hidden cause)
+
+
+@dataclass
+class Recording:
+    """Which physics samples (1 s) make each recorded row: ``group[i]`` is the row of sample i, -1 when
+    the sample is not recorded (an outage, or a ragged end)."""
+
+    group: np.ndarray
+    n_rows: int
+
+    @classmethod
+    def plan(cls, plan: RunPlan, n: int, rng: np.random.Generator) -> "Recording":
+        k = max(1, int(round(plan.record_period_s / DT)))
+        group = np.arange(n) // k
+        group[group >= n // k] = -1
+        if plan.outages:
+            lost = np.zeros(n // k, dtype=bool)
+            for _ in range(int(rng.integers(2, 5))):
+                start = float(rng.uniform(1800.0, max(1801.0, plan.duration_s - 3600.0)))
+                length = float(rng.uniform(300.0, 2400.0))
+                lost[int(start / DT) // k: int((start + length) / DT) // k + 1] = True
+            keep = np.flatnonzero(~lost)
+            new = np.full(n // k, -1)
+            new[keep] = np.arange(len(keep))
+            group = np.where(group >= 0, new[np.maximum(group, 0)], -1)
+        return cls(group, int(group.max()) + 1)
+
+    @property
+    def identity(self) -> bool:
+        return self.n_rows == len(self.group) and bool(np.all(self.group == np.arange(len(self.group))))
+
+    def mean(self, x: np.ndarray) -> np.ndarray:
+        """Row means (a row with any missing sample is missing), for 1-D or 2-D (samples first)."""
+        x = np.asarray(x, dtype=float)
+        if self.identity:
+            return x
+        used = self.group >= 0
+        g = self.group[used]
+        flat = x[used].reshape(len(g), -1)
+        bad = ~np.isfinite(flat)
+        cnt = np.bincount(g, minlength=self.n_rows)
+        out = np.empty((self.n_rows, flat.shape[1]))
+        for j in range(flat.shape[1]):
+            s = np.bincount(g, np.where(bad[:, j], 0.0, flat[:, j]), self.n_rows)
+            nb = np.bincount(g, bad[:, j].astype(float), self.n_rows)
+            out[:, j] = np.where(nb > 0, np.nan, s / np.maximum(cnt, 1))
+        return out.reshape((self.n_rows,) + x.shape[1:])
+
+    def pick(self, x: np.ndarray) -> np.ndarray:
+        """The value at each row's middle sample (a point reading)."""
+        x = np.asarray(x)
+        if self.identity:
+            return x
+        used = np.flatnonzero(self.group >= 0)
+        g = self.group[used]
+        first = np.full(self.n_rows, -1)
+        last = np.full(self.n_rows, -1)
+        first[g[::-1]] = used[::-1]
+        last[g] = used
+        return x[(first + last) // 2]
 
 
 @dataclass
@@ -145,6 +210,9 @@ def simulate_state(plan: RunPlan, unit: Unit, rng: np.random.Generator, latitude
         rh = ph.lag(rng.normal(0, 1, n), float(rng.uniform(3600, 10800)), DT)
         rh = float(rng.uniform(30, 60)) + rh / np.std(rh) * float(rng.uniform(5, 15))
         hidden["humidity_pct"] = rh
+    if plan.bias_step:
+        # a step at a random time, not driven by temperature (a shock, a contact settling): 0 then 1
+        hidden["bias_step"] = (t >= float(rng.uniform(0.2, 0.8)) * plan.duration_s).astype(float)
     power = np.ones(n)
     if plan.power_cycles:
         i = int(rng.uniform(3600, 7200) / DT)
@@ -246,9 +314,11 @@ def block_std100(x: np.ndarray) -> float:
 
 
 def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random.Generator,
-             latitude_deg: float, run_index: int, meta: dict[str, str]) -> tuple[Dataset, RunState, dict[str, Any]]:
+             latitude_deg: float, run_index: int,
+             meta: dict[str, str]) -> tuple[Dataset, RunState, dict[str, Any], Dataset, Recording]:
     """Simulate a run.  On the first run (run_index 0) each effect's coefficient is set from its
-    visible size; later runs reuse it.  Returns the dataset, the true state and the noise floors."""
+    visible size; later runs reuse it.  Returns the recorded dataset, the true state, the noise
+    floors, the dataset at the physics' 1-s rate and the recording that turns one into the other."""
     state = simulate_state(plan, unit, rng, latitude_deg)
     n = len(state.time_s)
     cols: dict[str, np.ndarray] = {"time_s": state.time_s.copy()}
@@ -294,6 +364,13 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
         cols["orientation"] = state.orientation.copy()
     if plan.table_rates_dps:
         cols["table_rate_dps"] = state.table_rate_dps.copy()
-    md = {"latitude_deg": repr(float(latitude_deg)), "sample_period_s": repr(DT),
+    full = Dataset(cols, {"latitude_deg": repr(float(latitude_deg)), "sample_period_s": repr(DT), **meta})
+    rec = Recording.plan(plan, n, rng)
+    out: dict[str, np.ndarray] = {}
+    for name, v in cols.items():
+        out[name] = rec.mean(v) if name.startswith("gyro_") else rec.pick(v)
+    if not rec.identity:
+        out["time_s"] = rec.mean(cols["time_s"])           # the middle of the averaging period
+    md = {"latitude_deg": repr(float(latitude_deg)), "sample_period_s": repr(float(plan.record_period_s)),
           "channel_probes": ",".join(f"{c}={p}" for c, p in sorted(unit.channel_probes.items())), **meta}
-    return Dataset(cols, md), state, floors
+    return Dataset(out, md), state, floors, full, rec

@@ -196,12 +196,17 @@ function renderLatest(latest) {
 function renderSampling(sampling) {
   // readings and intervals per device, in bench seconds (GET /runs/{id} "sampling")
   const devices = [["probes", "Probes (bus reads)"], ["chamber", "Chamber"], ["turntable", "Turntable"], ["psu", "Power supply"], ["gyro", "Gyro frames"]];
-  const rows = devices.filter(([key]) => sampling && sampling[key]).map(([key, label]) => {
-    const d = sampling[key];
-    return el("tr", el("td", label), el("td.num", String(d.readings)),
-      el("td.num", d.median_interval_s === null ? "–" : fmtNum(d.median_interval_s, 3)),
-      el("td.num", d.max_interval_s === null ? "–" : fmtNum(d.max_interval_s, 3)));
-  });
+  // a multi-gyro run: probes and frames are stored per gyro, so they are listed per fixture slot
+  const units = (sampling && sampling.units) || null;
+  const row = (label, d) => el("tr", el("td", label), el("td.num", String(d.readings)),
+    el("td.num", d.median_interval_s === null ? "–" : fmtNum(d.median_interval_s, 3)),
+    el("td.num", d.max_interval_s === null ? "–" : fmtNum(d.max_interval_s, 3)));
+  const rows = devices.filter(([key]) => sampling && sampling[key] && !(units && (key === "probes" || key === "gyro")))
+    .map(([key, label]) => row(label, sampling[key]));
+  for (const [slot, unit] of Object.entries(units || {})) {
+    rows.push(row(`${slot}: probes (bus reads)`, unit.probes));
+    rows.push(row(`${slot}: gyro frames`, unit.gyro));
+  }
   document.getElementById("sampling").replaceChildren(rows.length
     ? el("table#sampling-table", el("thead", el("tr", ["Device", "Readings", "Median interval (bench s)", "Max interval (bench s)"].map((h) => el("th", h)))),
       el("tbody", rows))

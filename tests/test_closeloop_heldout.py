@@ -1,0 +1,52 @@
+"""Close-the-loop on held-out cases from an independent generator (tests/heldout), a fast subset.
+
+The full referee score is ``python -m tests.heldout.score --seeds 5``.  Each test generates one case
+(a unit, TRAIN and VALIDATE runs with hidden physics on one channel), runs the product's close-the-loop
+on that channel and asks for the right effects (kind and probe), an honest verdict and an error within
+1.15x of the model with the true effects.  Cases the product currently misses are expected failures
+(not strict) with the measured reason.
+"""
+from __future__ import annotations
+
+import pytest
+
+from tests.heldout.score import score_case
+
+#: (class, seed) -> why the product misses it today (measured with tests.heldout.score)
+KNOWN_MISSES: dict[tuple[str, int], str] = {
+    ("complete_inside", 3): "a complete model gets a relay hysteresis on t3 added (1 % validation gain) and the "
+                            "channel is called explained instead of no_effect_missing",
+    ("relay_hysteresis", 1): "a heating/cooling relay on t4 (reversal width 5.2 C) is taken for a gradual "
+                             "hysteresis on t2: after 5.6x the oracle, partly_explained",
+    ("gradual_hysteresis", 1): "right kind and probe (Duhem on t2) but after 1.67x the oracle: a warm-up and a "
+                               "lag of t2 are added for the memory's initial state; partly_explained",
+    ("unexplained_step", 1): "a bias step at a random time is partly absorbed by time_drift: partly_explained "
+                             "instead of unexplained_structure_remains",
+}
+
+SUBSET = [
+    ("complete_colder", 1),
+    ("complete_short", 1),
+    ("complete_inside", 3),
+    ("lag_any_probe", 1),
+    ("gradient", 1),
+    ("warmup", 1),
+    ("two_effects", 2),
+    ("relay_hysteresis", 1),
+    ("gradual_hysteresis", 1),
+    ("unexplained_sinusoid", 1),
+    ("unexplained_step", 1),
+]
+
+
+def _param(cls: str, seed: int):
+    why = KNOWN_MISSES.get((cls, seed))
+    marks = [pytest.mark.xfail(reason=why, strict=False)] if why else []
+    return pytest.param(cls, seed, id=f"{cls}-seed{seed}", marks=marks)
+
+
+@pytest.mark.parametrize("cls,seed", [_param(c, s) for c, s in SUBSET])
+def test_heldout_case(cls, seed):
+    r = score_case(cls, seed)
+    assert r["passed"], (f"{r['case']} channel {r['channel']}: truth {r['truth'] or 'none'}, product "
+                         f"{r.get('verdict')} {r.get('added')}: " + " | ".join(r["reasons"]))

@@ -1,0 +1,98 @@
+"""The close-the-loop's numerical building blocks: the vectorised first-order recurrence (lags on
+irregular time axes, the Duhem memory), the O(m) degrees of freedom of block means, the noise model
+per contiguous stretch, and the spread the training noise puts into a validation error."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.fit.effects import duhem_state, first_order_lag, sample_period
+from bench.fit.noisefloor import (_structure_ratio, block_means_edf, coefficient_spread, contiguous_pieces,
+                                  fit_noise_model)
+from bench.signal import linear_recurrence
+
+
+def _loop(a, b, y0):
+    out, y = np.empty(len(a)), y0
+    for i in range(len(a)):
+        y = a[i] * y + b[i]
+        out[i] = y
+    return out
+
+
+def test_linear_recurrence_matches_the_loop_over_long_decays_and_resets():
+    rng = np.random.default_rng(0)
+    a = np.exp(-rng.exponential(0.5, 20_000))          # L falls by ~10,000: many chunks
+    a[100] = 0.0                                        # a full reset
+    b = rng.normal(size=20_000)
+    assert np.max(np.abs(linear_recurrence(a, b, 3.0) - _loop(a, b, 3.0))) < 1e-9
+    with pytest.raises(ValueError, match="in \\[0, 1\\]"):
+        linear_recurrence(np.array([1.5]), np.array([0.0]))
+
+
+def test_duhem_memory_is_the_recurrence_it_defines():
+    t = np.arange(0.0, 30_000.0, 10.0)
+    temp = 20 * np.sin(t / 3000.0) + np.random.default_rng(1).normal(0, 0.05, len(t))
+    rate = np.gradient(temp, t) * 60.0
+    for width in (0.3, 4.0, 30.0):
+        dT = rate * sample_period(t) / 60.0
+        a = np.exp(-np.abs(dT) / width)
+        assert np.max(np.abs(duhem_state(rate, t, width) - _loop(a, (1 - a) * np.sign(dT), 0.0))) < 1e-10
+
+
+def test_first_order_lag_steps_over_a_logger_outage_by_its_length():
+    t = np.concatenate([np.arange(0.0, 3000.0), np.arange(4800.0, 8000.0)])   # 30 min missing
+    x = np.where(t < 1000, 0.0, 10.0)
+    y = first_order_lag(x, t, 600.0)
+    i = int(np.searchsorted(t, 4800.0))
+    # over the outage the lag keeps relaxing towards 10 for 1800 s (not one sample period)
+    expected = 10.0 + (y[i - 1] - 10.0) * np.exp(-1801.0 / 600.0)
+    assert y[i] == pytest.approx(expected, rel=1e-9)
+    u = np.arange(0.0, 5000.0)
+    ref = _loop(np.full(len(u), np.exp(-1 / 600.0)), (1 - np.exp(-1 / 600.0)) * np.sin(u / 500.0), 0.0)
+    assert np.max(np.abs(first_order_lag(np.sin(u / 500.0), u, 600.0) - ref)) < 1e-10
+
+
+def test_block_means_edf_equals_the_dense_covariance_formula():
+    for m in (2, 12, 300):
+        for parts in ({-1.0: 1.0}, {0.0: 1.0}, {-2.0: 0.1, -1.0: 0.3, 0.0: 1.0}):
+            lags = np.abs(np.arange(m)[:, None] - np.arange(m)[None, :])
+            g = np.zeros((m, m))
+            for mu, av in parts.items():
+                g -= av * _structure_ratio(lags, mu)
+            c = g - g.mean(axis=0, keepdims=True)
+            c = c - c.mean(axis=1, keepdims=True)
+            assert block_means_edf(m, parts) == pytest.approx(np.trace(c) ** 2 / np.sum(c * c), rel=1e-9)
+    assert block_means_edf(288, {-1.0: 1.0}) == pytest.approx(287.0)
+
+
+def test_noise_model_ignores_steps_across_outages_and_missing_stretches():
+    rng = np.random.default_rng(2)
+    t = np.arange(40_000.0)
+    x = rng.normal(0, 0.05, len(t)) + np.where(t < 20_000, 0.0, 5.0)   # a jump where the logger was out
+    keep = (t < 20_000) | (t >= 22_000)
+    pieces = contiguous_pieces(x[keep], 1.0, t[keep])
+    assert [len(p) for p in pieces] == [20_000, 18_000]
+    joined = fit_noise_model([(x[keep], 1.0)]).floor(20_000)["noise_floor_dph"]
+    split = fit_noise_model([(x[keep], 1.0, t[keep])]).floor(20_000)["noise_floor_dph"]
+    assert split == pytest.approx(0.005, rel=0.15) and joined > 1.5 * split
+    y = x.copy()
+    y[20_000:22_000] = np.nan
+    assert [len(p) for p in contiguous_pieces(y, 1.0)] == [20_000, 18_000]
+
+
+def test_coefficient_spread_predicts_the_validation_error_of_a_true_form_model():
+    rng = np.random.default_rng(5)
+    m = 300
+    tr = np.linspace(-1, 1, m)
+    X = np.column_stack([np.ones(m), tr, tr ** 2])
+    V = np.column_stack([np.ones(200), np.sin(np.arange(200) / 15.0), np.sin(np.arange(200) / 15.0) ** 2])
+    model = fit_noise_model([(rng.normal(0, 1.0, 300_000), 1.0)])   # white: 0.1 per 100-s mean
+    spread = coefficient_spread(model, X, np.arange(m), V)
+    extra = []
+    for _ in range(400):
+        y = rng.normal(0, 0.1, m)                                     # 100-s means of the noise
+        b = np.linalg.lstsq(X, y, rcond=None)[0]
+        extra.append(np.var(V @ b, ddof=1))
+    assert spread.variance == pytest.approx(np.mean(extra), rel=0.15)
+    assert 1.0 <= spread.edf <= 2.0 + 1e-9          # two non-constant columns
