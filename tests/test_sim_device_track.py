@@ -10,7 +10,10 @@ from pathlib import Path
 import pytest
 
 from bench.sim.bench import SimulatedBench, lockstep_clock
+from bench.sim.chamber_physics import ChamberModel
+from bench.sim.lookahead import DeviceTrack, clone
 from bench.sim.multibench import MultiGyroBench
+from bench.sim.turntable import TableModel
 
 SEED = 5
 
@@ -88,3 +91,84 @@ def test_units_after_the_first_keep_their_blocks_ahead():
     first = stats[0]
     assert first["direct"] == 0 and first["blocks"] <= 25 and 3 <= first["dropped"] <= 6
     assert stats[1] == first and stats[2] == first
+
+
+def _config_pause(bench, gyro, source, psus, instants: int = 60):
+    """1 Hz; the gyro's output stopped (``=CONFIG,1``) from instant 10 to 25 while the chamber's set
+    point changes at 15: its source is then moved on by its probe conversions only."""
+    clock = bench.clock
+    bench.start()
+    try:
+        nodes = []
+        for i in range(instants):
+            clock.sleep(1.0)
+            if i == 2:
+                for psu in psus:
+                    psu.set_voltage(28.0)
+                    psu.set_output(True)
+            if i in (10, 25):
+                assert gyro.execute_command(f"=CONFIG,{int(i == 10)}") == f"CONFIG,{int(i == 10)}"
+            if i == 15:
+                bench.chamber_model.set_setpoint(35.0)
+            nodes.append(source.node_temperatures())
+        return [(f.bench_time, f.frame) for f in gyro.sent_frames()], nodes, dict(source.stats)
+    finally:
+        bench.stop()
+
+
+def test_a_unit_whose_output_stops_while_the_chamber_changes_serves_its_own_bytes():
+    multi = MultiGyroBench(units=3, clock=lockstep_clock(None, seed=SEED), seed=SEED, data_rate_hz=1)
+    g2 = multi.units[1]
+    frames, nodes, stats = _config_pause(multi, g2.gyro, g2.lookahead, [u.psu_model for u in multi.units])
+    own = SimulatedBench(clock=lockstep_clock(None, seed=SEED), scenario=g2.scenario, data_rate_hz=1)
+    own_frames, own_nodes, own_stats = _config_pause(own, own.gyro, own.lookahead, [own.psu_model])
+    assert len(frames) == 45 and frames == own_frames
+    assert nodes == own_nodes and stats == own_stats
+
+
+class _Unit:                 # what the track reads of a unit: its last served instant
+    def __init__(self, t: float) -> None:
+        self._t = t
+
+
+def test_a_unit_behind_integrates_on_each_instant_s_state_since():
+    """A unit last served at 0 s asks at 3 s, after the models went through 1, 2 and 3 s with a set
+    point command during 1 s and a table move during 2 s: its air, angles and rates come from the
+    state at 0 s up to 1 s, from the commanded state at 1 s up to 2 s, from the one at 2 s beyond."""
+    chamber, table = ChamberModel(air_c=23.0, setpoint_c=23.0), TableModel(axes=2)
+    chamber.advance_to(0.0)
+    table.advance_to(0.0)
+    track = DeviceTrack(chamber, table, 0.0)
+    behind, ahead = _Unit(0.0), _Unit(0.0)
+    track.join(behind)
+    track.join(ahead)
+    at = {0.0: (clone(chamber), clone(table))}
+    epochs = []
+    for t in (1.0, 2.0, 3.0):
+        if t == 2.0:
+            chamber.set_setpoint(40.0)
+        if t == 3.0:
+            table.interlock_close(1)
+            table.set_mode(1, "R")
+            table.set_rate_demand(1, 10.0)
+        at[t - 1.0] = (clone(chamber), clone(table))        # the state at the instant before, commands in
+        epochs.append(track.instant(t))
+        ahead._t = t
+    assert epochs[1] == epochs[0] + 1 and epochs[2] == epochs[1] + 1     # each command seen once
+    times = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0]
+    air, angles, rates = track.states(0.0, times)
+    want, base = [], None
+    for g in times:                  # each instant's state advanced through the times of its stretch
+        if base != min(2.0, float(int(g - 1e-9))):
+            base = min(2.0, float(int(g - 1e-9)))
+            c, tb = (clone(m) for m in at[base])
+        c.advance_to(g)
+        tb.advance_to(g)
+        want.append((c.air_c, list(tb.angles()), list(tb.rates())))
+    assert [(a, list(b), list(r)) for a, b, r in zip(air.tolist(), angles.tolist(), rates.tolist())] == want
+    assert air[-1] > air[3] > air[0] and rates[-1][0] != 0.0 and rates[3][0] == 0.0
+    behind._t = 3.0                                           # nobody behind: older states let go
+    track.instant(4.0)
+    assert list(track._kept) == [3.0]
+    with pytest.raises(RuntimeError, match="no chamber and table state kept for bench instant 0.0"):
+        track.states(0.0, [5.0])
