@@ -141,7 +141,9 @@ def test_kill_a_three_gyro_run_mid_ramp_then_resume(tmp_path):
             span = round((after[-1].t_last - after[0].t_first) * RATE_HZ) + 1
             missing = sum(g.frames_missing or 0 for g in gaps)
             assert expected + missing == span, (slot, expected, missing, span, [(g.reason, g.frames_missing) for g in gaps])
-            totals.add(expected)
-        assert len(totals) == 1                           # the three gyros recorded the same instants
+            totals.add((crash.t_to, after[-1].t_last))
+        # after the resume the three gyros recorded the same instants (before the kill each had committed
+        # what its own frame writer had flushed, so their counts may differ by a few frames)
+        assert len(totals) == 1, totals
     finally:
         db.dispose()
