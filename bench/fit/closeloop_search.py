@@ -504,13 +504,25 @@ def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
         for i, e in enumerate(current):
             others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
             ev = gates(problem, problem.score(others), full, (e,))
-            if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
+            if _redundant(ev) and (weakest is None or ev["delta_bic"] < weakest[1]):
                 weakest = (i, ev["delta_bic"], others)
         if weakest is None:
             break
         steps.append({"pruned": current[weakest[0]].label, "delta_bic_given_the_others": weakest[1]})
         current = weakest[2]
     return current
+
+
+def _redundant(ev: dict[str, Any]) -> bool:
+    """Backward-pass verdict on one effect given all the others: redundant when the BIC (nested models,
+    effective n) or the blocked cross-validation says it is not needed.  A weak HAC Wald test alone does
+    not remove it: two collinear effects (a memory and a lag bent to mimic it) inflate each other's
+    coefficient variance, which the Wald test reads as weak evidence, while the BIC of the nested fits
+    does not suffer from it."""
+    if ev["passed"]:
+        return False
+    cv = ev["cv_gain"]
+    return bool(ev["delta_bic"] <= DBIC_MIN or (np.isfinite(cv) and cv < MIN_CV_GAIN))
 
 
 def _describe(eff: fx.Effect, ev: dict[str, Any]) -> dict[str, Any]:
