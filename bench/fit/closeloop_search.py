@@ -514,15 +514,13 @@ def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
 
 
 def _redundant(ev: dict[str, Any]) -> bool:
-    """Backward-pass verdict on one effect given all the others: redundant when the BIC (nested models,
-    effective n) or the blocked cross-validation says it is not needed.  A weak HAC Wald test alone does
-    not remove it: two collinear effects (a memory and a lag bent to mimic it) inflate each other's
-    coefficient variance, which the Wald test reads as weak evidence, while the BIC of the nested fits
-    does not suffer from it."""
-    if ev["passed"]:
-        return False
-    cv = ev["cv_gain"]
-    return bool(ev["delta_bic"] <= DBIC_MIN or (np.isfinite(cv) and cv < MIN_CV_GAIN))
+    """Backward-pass verdict on one effect given all the others: redundant when the nested-model BIC
+    (effective n) no longer pays for it.  Every effect passed the HAC Wald and cross-validation gates
+    when it was added; given later effects those two are no judges of redundancy: two collinear
+    effects (a memory and a lag bent to mimic it) inflate each other's coefficient variance, which the
+    Wald test reads as weak evidence, and a transient at a segment's edge (a warm-up) is extrapolated
+    from segments where its column is nearly zero, which the cross-validation reads as harm."""
+    return bool(not ev["passed"] and ev["delta_bic"] <= DBIC_MIN)
 
 
 def _describe(eff: fx.Effect, ev: dict[str, Any]) -> dict[str, Any]:

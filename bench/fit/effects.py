@@ -131,6 +131,7 @@ class Family:
     options: int = 1               # how many probes / pairs it was chosen among
     limits: tuple[float, float] | None = None   # where the parameter stays meaningful (None: one grid
                                                 # step beyond each end of the grid)
+    variants: int = 1              # discrete variants of the family on one probe (a memory's start rules)
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -150,10 +151,12 @@ class Family:
     def penalty(self, n_eff: float) -> float:
         """BIC penalty of the family's searched parameters: ln(n_eff) for the continuous one, ln(number
         of options) for the probe or pair chosen among the data's (a discrete model choice; none for
-        the declared model's own probe)."""
+        the declared model's own probe, whose variants, e.g. a memory's start rule, still count)."""
         pen = np.log(n_eff) if self.param else 0.0
         if self.fixed and self.chosen_probe and self.options > 1:
             pen += np.log(self.options)
+        elif self.variants > 1:
+            pen += np.log(self.variants)
         return float(pen)
 
     @property
@@ -409,13 +412,14 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                     return {f"duhem{w:.3g}({p},{start})": duhem_state(x.rates[p], x.time, w, m0)}
                 fixed = (("probe", p), ("form", "gradual")) + ((("start", start),) if start != "neutral" else ())
                 out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
-                                  limits=limits))
+                                  limits=limits, variants=len(MEMORY_STARTS)))
             for start in MEMORY_STARTS[1:]:
                 def reversal(x: Inputs, w, p=p, start=start):
                     s0 = memory_start(start, x.temps[p], w)
                     return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(x.temps[p], w, s0)}
                 out.append(Family("hysteresis", (("probe", p), ("form", "reversal"), ("start", start)), reversal,
-                                  "width_c", widths, chosen_probe=mine, limits=limits))
+                                  "width_c", widths, chosen_probe=mine, limits=limits,
+                                  variants=len(MEMORY_STARTS) - 1))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
