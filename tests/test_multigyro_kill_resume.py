@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from bench.storage import queries
 from bench.storage.db import open_database
@@ -53,9 +53,12 @@ def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path) -> Non
                 cp = s.get(Run, rid).checkpoint
                 frames = [sum(c for (c,) in s.execute(select(FrameChunk.count).where(FrameChunk.run_id == u)))
                           for u in units.values()]
+                # the frame writer commits behind the engine (in wall time): held, it catches up
+                last = [s.execute(select(func.max(FrameChunk.t_last)).where(FrameChunk.run_id == u)).scalar()
+                        for u in units.values()]
             if (ramp is not None and ramp.status == "running" and cp and cp.get("step_index") == ramp.index
                     and (cp.get("step_state") or {}).get("elapsed_s", 0) > 60 and len(frames) == 3
-                    and min(frames) > 100):
+                    and min(frames) > 100 and None not in last and min(last) >= HOLD_T - 30.0):
                 return
         time.sleep(0.05)
     raise AssertionError("the run never stood in the middle of its ramp with every gyro's data committed")

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from sqlalchemy import select
+from sqlalchemy import event, select
 from sqlalchemy.exc import OperationalError
 
 from bench.storage import (BufferFull, FrameWriter, StorageUnavailable, UnknownFrameKind, WriterFenced,
@@ -259,6 +259,46 @@ def test_a_second_writer_fences_off_the_first(db, run_id):
     w2.add_many(frames[100:])
     w2.close()
     assert np.array_equal(_stored_indexes(db, run_id), np.arange(200))
+
+
+def test_a_batch_of_the_old_writer_racing_the_takeover_is_fenced_not_duplicated(tmp_path):
+    """A takeover while the previous writer (a worker frozen past its lease, now woken) still writes: a
+    batch the old writer tries while the new one opens is fenced, and the new one starts where the
+    stored chunks end.  Deterministic on SQLite: the old writer's database gives up at once on a lock,
+    and its batch is tried exactly while the new writer reads the run's chunks."""
+    url = f"sqlite:///{tmp_path / 'race.sqlite'}"
+    db = open_database(url)
+    with db.session() as s:
+        rid = queries.create_run(s, procedure="race").id
+    old_db = open_database(url, busy_timeout_ms=0, migrate_to_head=False)
+    frames = make_frames(200)
+    w1 = FrameWriter(old_db, rid, autostart=False)
+    w1.add_many(frames[:100])
+    w1.flush()
+    w1.add_many(frames[100:150])                 # the old writer's next batch, not yet written
+    tried = []
+
+    def old_writer_flushes(conn, cursor, statement, *_):
+        if "FROM frame_chunks" in statement and not tried:     # the new writer reads where chunks end
+            try:
+                w1.flush()
+                tried.append("stored")
+            except (StorageUnavailable, WriterFenced) as exc:
+                tried.append(type(exc).__name__)
+
+    event.listen(db.engine, "before_cursor_execute", old_writer_flushes)
+    try:
+        w2 = FrameWriter(db, rid, autostart=False)
+    finally:
+        event.remove(db.engine, "before_cursor_execute", old_writer_flushes)
+    assert tried == ["StorageUnavailable"]       # it waited for the lock the takeover holds
+    with pytest.raises(WriterFenced, match="another frame writer"):
+        w1.flush()
+    w2.add_many(frames[100:])
+    w2.close()
+    assert np.array_equal(_stored_indexes(db, rid), np.arange(200))
+    old_db.dispose()
+    db.dispose()
 
 
 def test_wrong_frame_length_and_unknown_kind_are_typed_errors(db, run_id):

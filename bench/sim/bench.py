@@ -109,7 +109,7 @@ class SimulatedBench:
         self.psu_model.advance_to(t0)
         self._lock = threading.RLock()
         # the chamber and table states along the physics' times, shared by every gyro of the bench
-        self.device_track = DeviceTrack()
+        self.device_track = DeviceTrack(self.chamber_model, self.table_model, t0)
         if self.lockstep:
             # integrated in blocks ahead of the clock, on exact device states (bench.sim.lookahead)
             inputs = _RowInputs(self)
@@ -224,6 +224,7 @@ class SimulatedBench:
                 if name not in parts:
                     raise ValueError(f"simulated bench snapshot has no {name!r} state")
                 vars(obj).update(parts[name])
+            self.device_track.reset(float(snap["t"]))
             if self.lookahead is not None:
                 self.lookahead.reset(float(snap["t"]))
         return float(snap["t"])

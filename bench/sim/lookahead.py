@@ -9,13 +9,15 @@ step at a time (their exact state at every grid time, no interpolation), and ser
 frames and probe temperatures from that block.
 
 Causality: a block is used for the next instant only if the real device models, which the simulators'
-front-ends read and command, are at that moment exactly in the state the copies had at the same bench
-instant (their pickled state, random generators of measurement noise aside).  Any difference (a set
-point, a move, the supply switched, an injected fault: anything a command or a test changed) drops the
-rest of the block: the physics is put back to the last served instant (``GyroPhysics.checkpoint`` /
-``rollback`` and the block's own inputs up to there) and integrates on from the real models' state.
-So a command acts at the bench instant it was given, as before; which blocks are computed depends
-only on bench-time events, so the same scenario and seed give the same data at any speed and load.
+front-ends read and command, are at that moment exactly in the state they were left in at the last
+served instant (their pickled state, random generators of measurement noise aside): the unit's own
+supply compared here, the shared chamber and table by the bench's ``DeviceTrack`` (its ``epoch``).
+Any difference (a set point, a move, the supply switched, an injected fault: anything a command or a
+test changed) drops the rest of the block: the physics is put back to the last served instant
+(``GyroPhysics.checkpoint`` / ``rollback`` and the block's own inputs up to there) and integrates on
+from the models' state at that instant, commands included.  So a command acts at the bench instant it
+was given, as before; which blocks are computed depends only on bench-time events, so the same
+scenario and seed give the same data at any speed and load.
 
 Block mode needs the instants and the frames on the physics grid (the lockstep default: 1 Hz frames,
 a 1 s grid, instants on whole bench seconds).  Otherwise (an instant or a frame between grid points)
@@ -23,10 +25,12 @@ the physics is driven instant by instant, as ``GyroPhysics.sample_many`` does, o
 device states.
 
 Device states at the times the physics asks for: the chamber and table are one pair of models on a
-bench with several gyros, so their states along a list of times come from one ``DeviceTrack`` per
-bench, computed on one pair of copies and reused by every unit that asks for the same times from the
-same model state (keyed by the models' fingerprint and the times: equal keys, equal states).  The
-supply is static between commands (``PsuModel``), so its columns are its state when asked.
+bench with several gyros.  One ``DeviceTrack`` per bench advances them to each instant once (whichever
+unit is served first) and keeps their state at the instant before, so every unit integrates from the
+same state along the same inputs, served first or last, and a unit's served bytes are those of a bench
+of its own; the states along a list of times are computed on one pair of copies and reused by every
+unit that asks for the same times from the same state.  The supply is static between commands
+(``PsuModel``), so its columns are its state when asked.
 
 Block length: ``MIN_AHEAD_S`` after a block had to be dropped, doubling (to ``MAX_AHEAD_S``) each time
 a block is used to its end, so a stretch of commands (a table move) costs little extra work.
@@ -70,49 +74,124 @@ def fingerprint(models: Sequence[Any]) -> bytes:
     return buf.getvalue()
 
 
-def clone(model: Any) -> Any:
-    """An independent copy of a device model (own lock, state deep-copied)."""
-    state = {k: v for k, v in vars(model).items() if not isinstance(v, _LOCKS)}
-    copy = object.__new__(type(model))
-    vars(copy).update(pickle.loads(pickle.dumps(state, protocol=5)))
-    for k, v in vars(model).items():
+def freeze(model: Any) -> bytes:
+    """A device model's whole state as bytes (its locks aside), to be ``thaw``-ed into a copy."""
+    return pickle.dumps({k: v for k, v in vars(model).items() if not isinstance(v, _LOCKS)}, protocol=5)
+
+
+def thaw(frozen: bytes, like: Any) -> Any:
+    """An independent model of ``like``'s type in the ``freeze``-d state (locks of its own)."""
+    copy = object.__new__(type(like))
+    vars(copy).update(pickle.loads(frozen))
+    for k, v in vars(like).items():
         if isinstance(v, _LOCKS):
             vars(copy)[k] = threading.RLock() if isinstance(v, _LOCKS[1]) else threading.Lock()
     return copy
 
 
-class DeviceTrack:
-    """The chamber's air and the table's angles and rates along increasing bench times, computed on
-    copies of the models (the real ones stay where they are) and kept for the last (state, times)
-    asked: the units of one bench ask for the same times at the same instant."""
+def clone(model: Any) -> Any:
+    """An independent copy of a device model (own lock, state deep-copied)."""
+    return thaw(freeze(model), model)
 
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._key: tuple[bytes, tuple[float, ...]] | None = None
-        self._states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+class DeviceTrack:
+    """The chamber and table of one bench along bench time, for every gyro on it.
+
+    The real models are brought to each bench instant once, by ``instant`` (the first unit served at
+    that instant calls it; the others find them there), and the state they had at the instant before,
+    with the commands given during it, is kept: a unit integrates from there along the same inputs
+    whether it is served first or last.  ``epoch`` counts the instants at which the models were found
+    changed since the previous one (a set point, a move, a fault): a unit's block ahead is still right
+    while the epoch is the one it was built in.  ``states`` gives the air, angles and rates along grid
+    times from the state at a unit's last served instant, on copies (the real models stay where they
+    are), through the states kept for each instant since (a unit that skipped instants, its line in
+    config mode, integrates on what the chamber did meanwhile); the units of one bench ask for the
+    same times from the same instant, so the last answer is kept and reused."""
+
+    def __init__(self, chamber: Any, table: Any, t0: float) -> None:
+        self.chamber, self.table = chamber, table
+        self._lock = threading.RLock()
+        self._units: list["Lookahead"] = []
         self.computed = 0                  # tracks integrated (not reused), for the benchmarks
         self.reused = 0
+        self.epoch = 0
+        self.reset(t0)
 
-    def states(self, chamber: Any, table: Any, times: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(air (n,), angles (n, axes), rates (n, axes)) at ``times``, the models advanced through
-        them in order from their present state, as ``device_inputs_row`` on copies does."""
-        key = (fingerprint((chamber, table)), tuple(times))
+    def join(self, unit: "Lookahead") -> None:
+        """``unit`` integrates on this track: states are kept back to its last served instant."""
         with self._lock:
-            if key != self._key or self._states is None:
-                c, tb = clone(chamber), clone(table)
-                air, ang, rates = [], [], []
-                for g in key[1]:
-                    c.advance_to(g)
-                    tb.advance_to(g)
-                    air.append(c.air_c)
-                    ang.append(tb.angles())
-                    rates.append(tb.rates())
-                self._key = key
-                self._states = (np.array(air, dtype=float), np.array(ang, dtype=float).reshape(len(air), -1),
-                                np.array(rates, dtype=float).reshape(len(air), -1))
-                self.computed += 1
+            self._units.append(unit)
+
+    def reset(self, t: float) -> None:
+        """The models were put in the state of bench instant ``t`` (a restored snapshot)."""
+        with self._lock:
+            self._t = float(t)
+            self._fp = fingerprint((self.chamber, self.table))
+            # instant -> (fingerprint, chamber frozen, table frozen): their state before the next instant
+            self._kept: dict[float, tuple[bytes, bytes, bytes]] = {}
+            self._key: tuple | None = None
+            self._states: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+            self.epoch += 1
+
+    def instant(self, t: float) -> int:
+        """The real models at bench instant ``t`` (advanced there once; an instant already reached is
+        left alone); returns the epoch."""
+        with self._lock:
+            if t <= self._t:
+                return self.epoch
+            models = (self.chamber, self.table)
+            before = fingerprint(models)
+            if before != self._fp:
+                self.epoch += 1
+            self._kept[self._t] = (before, freeze(self.chamber), freeze(self.table))
+            behind = min((u._t for u in self._units), default=self._t)
+            for old in [k for k in self._kept if k < behind]:
+                del self._kept[old]
+            for m in models:
+                m.advance_to(t)
+            self._t = float(t)
+            self._fp = fingerprint(models)
+            return self.epoch
+
+    def states(self, since: float, times: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(air (n,), angles (n, axes), rates (n, axes)) at ``times`` (increasing, after ``since``
+        or at it), as the models went from their state at instant ``since``: between two kept
+        instants from the state at the first, past the last one on from there."""
+        with self._lock:
+            if since >= self._t:       # the live models (no unit moved past this instant yet)
+                bases = [(since, (fingerprint((self.chamber, self.table)), None, None))]
             else:
+                bases = [(k, v) for k, v in self._kept.items() if k >= since]
+                if not bases or bases[0][0] != since:
+                    raise RuntimeError(f"device track: no chamber and table state kept for bench instant {since!r} "
+                                       f"(kept: {sorted(self._kept)[:1]}..{sorted(self._kept)[-1:]})")
+            # equal fingerprints of the states the track starts from, equal states along it
+            key = (since, tuple(times), tuple((k, v[0]) for k, v in bases))
+            if key == self._key and self._states is not None:
                 self.reused += 1
+                return self._states
+
+            def start(base: tuple[bytes, bytes | None, bytes | None]) -> tuple[Any, Any]:
+                if base[1] is None:
+                    return clone(self.chamber), clone(self.table)
+                return thaw(base[1], self.chamber), thaw(base[2], self.table)
+
+            i = 0
+            c, tb = start(bases[0][1])
+            air, ang, rates = [], [], []
+            for g in key[1]:
+                while i + 1 < len(bases) and g > bases[i + 1][0]:
+                    i += 1
+                    c, tb = start(bases[i][1])
+                c.advance_to(g)
+                tb.advance_to(g)
+                air.append(c.air_c)
+                ang.append(tb.angles())
+                rates.append(tb.rates())
+            self._key = key
+            self._states = (np.array(air, dtype=float), np.array(ang, dtype=float).reshape(len(air), -1),
+                            np.array(rates, dtype=float).reshape(len(air), -1))
+            self.computed += 1
             return self._states
 
 
@@ -138,9 +217,11 @@ class Lookahead:
         self._lock = threading.RLock()
         self._t = physics.clock_start          # the instant served last: the physics' public present
         self._block: _Block | None = None
-        self._fp: bytes | None = None          # the real models' state when they were last advanced
+        self._fp: bytes | None = None          # the supply's state when it was last advanced
+        self._epoch = -1                       # the chamber and table's (``DeviceTrack.epoch``) then
         self._ahead = self.MIN_AHEAD_S
         self.stats = {"blocks": 0, "dropped": 0, "direct": 0}
+        bench.device_track.join(self)
 
     # ---- GyroSource / ProbeSource ------------------------------------------------------------
     def advance_to(self, t: float) -> None:
@@ -214,6 +295,14 @@ class Lookahead:
         b = self.bench
         return b.chamber_model, b.table_model, b.psu_model
 
+    def _unchanged(self, t: float) -> bool:
+        """Nothing but time moved the device models since the last served instant (their states at
+        instant ``t``, before they are advanced to it, are those the block ahead was computed from)."""
+        if self._fp is None:
+            return False
+        epoch = self.bench.device_track.instant(t)
+        return epoch == self._epoch and fingerprint((self.bench.psu_model,)) == self._fp
+
     def _on_grid(self, t: float) -> bool:
         """``t`` is exactly one of the grid times the physics integrates to from its committed state."""
         ph = self.physics
@@ -222,7 +311,7 @@ class Lookahead:
     def _at(self, t: float, frames: list[float] | None) -> list[GyroSample]:
         blk = self._block
         if blk is not None and t >= self._t:
-            if t in blk.index and (t == self._t or fingerprint(self._models()) == self._fp):
+            if t in blk.index and (t == self._t or self._unchanged(t)):
                 rows = [blk.index.get(x) for x in frames] if frames else []
                 if None not in rows:
                     self._serve_real(t)
@@ -243,15 +332,17 @@ class Lookahead:
         return self._direct(t, frames)
 
     def _serve_real(self, t: float, keep_fingerprint: bool = True) -> None:
-        """The real device models follow the clock (front-ends and tests read them at the instant);
-        their fingerprint is kept for a block ahead to be checked against (none on the direct path)."""
+        """The real device models follow the clock (front-ends and tests read them at the instant):
+        the shared chamber and table through the bench's track (once per instant, whichever unit
+        comes first), the unit's own supply here; their state is kept for a block ahead to be
+        checked against (none on the direct path)."""
         if t == self._t and self._fp is not None:
             return
-        models = self._models()
-        for m in models:
-            m.advance_to(t)
+        self._epoch = self.bench.device_track.instant(t)
+        psu = self.bench.psu_model
+        psu.advance_to(t)
         self._t = t
-        self._fp = fingerprint(models) if keep_fingerprint else None
+        self._fp = fingerprint((psu,)) if keep_fingerprint else None
 
     def _settle(self) -> None:
         blk, ph = self._block, self.physics
@@ -280,8 +371,8 @@ class Lookahead:
         """One instant on the physics' own path (instants or frames off the grid)."""
         ph = self.physics
         self.stats["direct"] += 1
-        for m in self._models():
-            m.advance_to(self._t)
+        self.bench.device_track.instant(self._t)
+        self.bench.psu_model.advance_to(self._t)
         base = ph._state.t
         grid = [base + ph.h * k for k in range(1, int(math.floor((t - base) / ph.h + 1e-9)) + 1)]
         wanted = sorted(set(grid) | set(frames or ()) | {t})
@@ -293,9 +384,10 @@ class Lookahead:
 
     def _rows(self, times: list[float]) -> dict[float, np.ndarray]:
         """``device_inputs_row`` at each of ``times`` (increasing), the models advanced through them
-        from their present state on copies: the chamber and table from the bench's shared track."""
+        on copies from their state at the last served instant: the chamber and table from the
+        bench's shared track."""
         b = self.bench
-        air, angles, rates = b.device_track.states(b.chamber_model, b.table_model, times)
+        air, angles, rates = b.device_track.states(self._t, times)
         g = b.geometry
         outer, inner = g.outer_axis_number - 1, g.inner_axis_number - 1
         psu = b.psu_model                  # static between commands: its state now is its state then

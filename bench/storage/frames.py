@@ -338,11 +338,18 @@ class FrameWriter:
 
     # ------------------------------------------------------------------ setup
     def _take_over(self) -> None:
-        """Read (or create) the run's cursor and fence off any previous writer."""
+        """Fence off any previous writer, then read (or create) the run's cursor.
+
+        The token is written first: that write waits for a previous writer's batch in flight (its row
+        lock on PostgreSQL, the write lock on SQLite) and makes its next batch fail (``WriterFenced``), so
+        the cursor and chunks read after it are final.  Read first, a batch the previous writer
+        committed in between would end where this writer starts (a duplicate first index)."""
         try:
             with self.db.engine.begin() as conn:
                 if conn.execute(select(Run.id).where(Run.id == self.run_id)).first() is None:
                     raise UnknownRun(f"run {self.run_id} does not exist in {self.db.url}")
+                conn.execute(update(FrameCursor).where(FrameCursor.run_id == self.run_id)
+                             .values(writer_token=self._token, updated_at=utcnow()))
                 cur = conn.execute(select(FrameCursor.next_index, FrameCursor.batch_seq, FrameCursor.t_last)
                                    .where(FrameCursor.run_id == self.run_id)).first()
                 last = conn.execute(select(FrameChunk.first_index, FrameChunk.count, FrameChunk.t_first,
@@ -359,8 +366,6 @@ class FrameWriter:
                     if cur.next_index != stored_next:
                         raise StorageError(f"run {self.run_id}: frame cursor says next index {cur.next_index} "
                                            f"but stored chunks end at {stored_next}")
-                    conn.execute(update(FrameCursor).where(FrameCursor.run_id == self.run_id)
-                                 .values(writer_token=self._token, updated_at=utcnow()))
                     next_index, seq = cur.next_index, cur.batch_seq
         except OperationalError as exc:
             raise StorageUnavailable(f"run {self.run_id}: cannot open frame writer: {_short(exc)}") from None
