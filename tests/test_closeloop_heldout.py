@@ -16,10 +16,9 @@ from tests.heldout.score import score_case
 KNOWN_MISSES: dict[tuple[str, int], str] = {
     ("complete_inside", 3): "a complete model gets a relay hysteresis on t3 added (1 % validation gain) and the "
                             "channel is called explained instead of no_effect_missing",
-    ("relay_hysteresis", 1): "a heating/cooling relay on t4 (reversal width 5.2 C) is taken for a gradual "
-                             "hysteresis on t2: after 5.6x the oracle, partly_explained",
-    ("gradual_hysteresis", 1): "right kind and probe (Duhem on t2) but after 1.67x the oracle: a warm-up and a "
-                               "lag of t2 are added for the memory's initial state; partly_explained",
+    ("gradual_hysteresis", 1): "right kind, probe and start (Duhem on t2, reversed start) but after 1.17x the "
+                               "oracle and partly_explained (the structure tests still see correlated 100-s "
+                               "means)",
     ("unexplained_step", 1): "a bias step at a random time is partly absorbed by time_drift: partly_explained "
                              "instead of unexplained_structure_remains",
 }

@@ -504,13 +504,23 @@ def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
         for i, e in enumerate(current):
             others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
             ev = gates(problem, problem.score(others), full, (e,))
-            if not ev["passed"] and (weakest is None or ev["delta_bic"] < weakest[1]):
+            if _redundant(ev) and (weakest is None or ev["delta_bic"] < weakest[1]):
                 weakest = (i, ev["delta_bic"], others)
         if weakest is None:
             break
         steps.append({"pruned": current[weakest[0]].label, "delta_bic_given_the_others": weakest[1]})
         current = weakest[2]
     return current
+
+
+def _redundant(ev: dict[str, Any]) -> bool:
+    """Backward-pass verdict on one effect given all the others: redundant when the nested-model BIC
+    (effective n) no longer pays for it.  Every effect passed the HAC Wald and cross-validation gates
+    when it was added; given later effects those two are no judges of redundancy: two collinear
+    effects (a memory and a lag bent to mimic it) inflate each other's coefficient variance, which the
+    Wald test reads as weak evidence, and a transient at a segment's edge (a warm-up) is extrapolated
+    from segments where its column is nearly zero, which the cross-validation reads as harm."""
+    return bool(not ev["passed"] and ev["delta_bic"] <= DBIC_MIN)
 
 
 def _describe(eff: fx.Effect, ev: dict[str, Any]) -> dict[str, Any]:

@@ -131,6 +131,7 @@ class Family:
     options: int = 1               # how many probes / pairs it was chosen among
     limits: tuple[float, float] | None = None   # where the parameter stays meaningful (None: one grid
                                                 # step beyond each end of the grid)
+    variants: int = 1              # discrete variants of the family on one probe (a memory's start rules)
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -150,10 +151,12 @@ class Family:
     def penalty(self, n_eff: float) -> float:
         """BIC penalty of the family's searched parameters: ln(n_eff) for the continuous one, ln(number
         of options) for the probe or pair chosen among the data's (a discrete model choice; none for
-        the declared model's own probe)."""
+        the declared model's own probe, whose variants, e.g. a memory's start rule, still count)."""
         pen = np.log(n_eff) if self.param else 0.0
         if self.fixed and self.chosen_probe and self.options > 1:
             pen += np.log(self.options)
+        elif self.variants > 1:
+            pen += np.log(self.variants)
         return float(pen)
 
     @property
@@ -255,13 +258,68 @@ def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
     return state
 
 
-def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float) -> np.ndarray:
+def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:
     """Gradual (Duhem) hysteresis memory m in [-1, 1] driven by the filtered temperature change
     dT = rate dt: m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width) at each step, so it
-    saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks."""
+    saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks; it
+    starts at ``start``."""
     dT = np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0
     a = np.exp(-np.abs(dT) / width_c)
-    return linear_recurrence(a, (1.0 - a) * np.sign(dT), 0.0)
+    return linear_recurrence(a, (1.0 - a) * np.sign(dT), float(start))
+
+
+# How a hysteresis memory starts a run.  Its state at power-on is set by the unit's history before the
+# run, which no column records; each rule infers it from the run's own temperature path (never from
+# the gyro), so the rule chosen on TRAIN applies unchanged to any other run:
+#   "neutral"   half-way (0), no preference;
+#   "reversed"  saturated on the branch the run's first excursion of one width reverses (the unit was
+#               brought to the start temperature from the other side, as a soak before a ramp away
+#               from it usually is);
+#   "continued" saturated on the branch of that first excursion (approached from the same side).
+MEMORY_STARTS = ("neutral", "reversed", "continued")
+
+
+def first_excursion_sign(temp: np.ndarray, width_c: float) -> float:
+    """+1 / -1: the direction of the first move of at least ``width_c`` away from the start temperature
+    (+1 when the run never moves that far)."""
+    x = _hold_missing(np.asarray(temp, dtype=np.float64))
+    moved = np.flatnonzero(np.abs(x - x[0]) >= width_c)
+    return float(np.sign(x[moved[0]] - x[0])) if moved.size else 1.0
+
+
+def memory_start(rule: str, temp: np.ndarray, width_c: float) -> float:
+    """The memory's state at the start of a run under a start rule (``MEMORY_STARTS``)."""
+    if rule == "neutral":
+        return 0.0
+    first = first_excursion_sign(temp, width_c)
+    if rule == "reversed":
+        return -first
+    if rule == "continued":
+        return first
+    raise ValueError(f"unknown hysteresis start rule {rule!r}; expected one of {', '.join(MEMORY_STARTS)}")
+
+
+def reversal_relay_state(temp: np.ndarray, width_c: float, start: float) -> np.ndarray:
+    """Relay hysteresis on the temperature path (a Schmitt trigger on T): the state switches to +1
+    once T has risen ``width_c`` above its lowest value since the last switch, to -1 once it has
+    fallen ``width_c`` below its highest; it holds in between and starts at ``start`` (+1 or -1)."""
+    x = _hold_missing(np.asarray(temp, dtype=np.float64)).tolist()
+    out = np.empty(len(x))
+    s = 1.0 if start >= 0 else -1.0
+    hi = lo = x[0] if x else 0.0
+    for i, v in enumerate(x):
+        if s > 0:
+            if v > hi:
+                hi = v
+            elif hi - v >= width_c:
+                s, lo = -1.0, v
+        else:
+            if v < lo:
+                lo = v
+            elif v - lo >= width_c:
+                s, hi = 1.0, v
+        out[i] = s
+    return out
 
 
 def time_since_power_on(ds: Dataset) -> np.ndarray:
@@ -347,10 +405,21 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                           "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine))
         widths = _widths_for(inputs.temps[p])
         if widths:
-            out.append(Family("hysteresis", (("probe", p), ("form", "gradual")),
-                              lambda x, w, p=p: {f"duhem{w:.3g}({p})": duhem_state(x.rates[p], x.time, w)},
-                              "width_c", widths, chosen_probe=mine,
-                              limits=(widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))))
+            limits = (widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))
+            for start in MEMORY_STARTS:
+                def gradual(x: Inputs, w, p=p, start=start):
+                    m0 = memory_start(start, x.temps[p], w)
+                    return {f"duhem{w:.3g}({p},{start})": duhem_state(x.rates[p], x.time, w, m0)}
+                fixed = (("probe", p), ("form", "gradual")) + ((("start", start),) if start != "neutral" else ())
+                out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
+                                  limits=limits, variants=len(MEMORY_STARTS)))
+            for start in MEMORY_STARTS[1:]:
+                def reversal(x: Inputs, w, p=p, start=start):
+                    s0 = memory_start(start, x.temps[p], w)
+                    return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(x.temps[p], w, s0)}
+                out.append(Family("hysteresis", (("probe", p), ("form", "reversal"), ("start", start)), reversal,
+                                  "width_c", widths, chosen_probe=mine, limits=limits,
+                                  variants=len(MEMORY_STARTS) - 1))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
@@ -376,9 +445,14 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     out.append(Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0}))
     counts: dict[tuple, int] = {}
     for f in out:
-        key = (f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")
-        counts[key] = counts.get(key, 0) + 1
-    return [replace(f, options=counts[(f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")]) for f in out]
+        counts[_option_key(f)] = counts.get(_option_key(f), 0) + 1
+    return [replace(f, options=counts[_option_key(f)]) for f in out]
+
+
+def _option_key(f: Family) -> tuple:
+    """The families one discrete choice is made among: a kind and form, over probes (and, for a
+    hysteresis memory, its start rule)."""
+    return (f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")
 
 
 def _widths_for(temp: np.ndarray) -> tuple[float, ...]:
