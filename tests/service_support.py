@@ -76,6 +76,23 @@ def hold_bench_at(hold: Path, t: float, timeout: float = SAFETY_S, proc: subproc
              proc=proc, log=log)
 
 
+def start_held_run(cli_args: list[str], cwd: Path, hold: Path, hold_t: float) -> tuple[subprocess.Popen, int]:
+    """Start ``bench <cli_args>`` (with ``--json``) in a process whose lockstep bench time stops at
+    ``hold_t`` (its ``BENCH_SIM_HOLD_FILE``), and return the process and the run id it prints first on
+    stderr.  The caller kills the process (it is left running)."""
+    hold.write_text(repr(hold_t))
+    env = dict(os.environ, PYTHONPATH=str(ROOT), BENCH_SIM_HOLD_FILE=str(hold))
+    proc = subprocess.Popen([sys.executable, "-m", "bench.cli", *cli_args], cwd=cwd, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = proc.stderr.readline().decode()      # with --json, "run <ID>" goes to stderr
+    while first and not first.startswith("run "):
+        first = proc.stderr.readline().decode()
+    if not first.startswith("run "):
+        proc.kill()
+        raise AssertionError(f"bench {' '.join(cli_args)} printed no run id: {proc.stderr.read().decode()[-3000:]}")
+    return proc, int(first.split()[1])
+
+
 def hold_clock_at(clock, t: float, ended: Callable[[], Any] | None = None, timeout: float = SAFETY_S) -> None:
     """The same in one process: let the thread driving ``clock`` (a ``LockstepClock``) go on to bench time
     ``t`` and wait until it stands there (``t`` served, nothing done at ``t`` yet); it stays there until

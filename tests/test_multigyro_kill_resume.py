@@ -6,10 +6,8 @@ a stored frame or counted in a recorded gap (0 lost beside the gaps), the kill's
 ``crash_resume`` gap in bench time.  The outage lasts a stated 120 bench seconds."""
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -18,11 +16,10 @@ from sqlalchemy import func, select
 from bench.storage import queries
 from bench.storage.db import open_database
 from bench.storage.models import FrameChunk, Gap, Run, Step
-from tests.service_support import SAFETY_S
+from tests.service_support import SAFETY_S, start_held_run
 from tests.test_runs_resume import HOLD_T, OUTAGE_S, PARAMS
 from tests.test_runs_support import cli, last_json
 
-ROOT = Path(__file__).resolve().parents[1]
 GYROS = ("K-1", "K-2", "K-3")
 RATE_HZ = 1
 
@@ -66,22 +63,15 @@ def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path) -> Non
 
 def test_kill_a_three_gyro_run_mid_ramp_then_resume(tmp_path):
     url = f"sqlite:///{tmp_path / 'bench.sqlite'}"
-    args = [sys.executable, "-m", "bench.cli", "run", "thermal_ramp", *(a for g in GYROS for a in ("--gyro", g)),
+    args = ["run", "thermal_ramp", *(a for g in GYROS for a in ("--gyro", g)),
             "--sim", "--speed", "200", "--seed", "1", "--data-rate", str(RATE_HZ), "--json", "--no-progress",
             "--db", url]
     for p in PARAMS:
         args += ["--param", p]
     hold = tmp_path / "hold"
-    hold.write_text(repr(HOLD_T))
-    env = dict(os.environ, PYTHONPATH=str(ROOT), BENCH_SIM_HOLD_FILE=str(hold))
-    proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc, rid = start_held_run(args, tmp_path, hold, HOLD_T)
     db = open_database(url)
     try:
-        first = proc.stderr.readline().decode()      # with --json, "run <ID>" goes to stderr
-        while first and not first.startswith("run "):
-            first = proc.stderr.readline().decode()
-        assert first.startswith("run "), (first, proc.stderr.read().decode()[-3000:] if proc.poll() else "")
-        rid = int(first.split()[1])
         _wait_held_mid_ramp(db, rid, proc, hold)
         proc.send_signal(signal.SIGKILL)
         proc.wait(SAFETY_S / 10)

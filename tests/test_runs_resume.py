@@ -6,10 +6,8 @@ seconds, so nothing here depends on how long the host took to restart)."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,9 +15,9 @@ from sqlalchemy import select
 
 from bench.storage.db import open_database
 from bench.storage.models import FrameChunk, Gap, Run, Segment, Step
+from tests.service_support import start_held_run
 from tests.test_runs_support import cli, last_json
 
-ROOT = Path(__file__).resolve().parents[1]
 OUTAGE_S = 120.0
 T0 = 1_767_225_600.0            # a seeded simulated bench starts at this bench instant
 HOLD_T = T0 + 500.0             # the ramp runs from about T0 + 132 s to T0 + 852 s
@@ -73,20 +71,13 @@ def _assert_continuous(db, rid: int, gap) -> None:
 
 def test_kill_mid_ramp_then_resume(tmp_path):
     url = f"sqlite:///{tmp_path / 'bench.sqlite'}"
-    args = [sys.executable, "-m", "bench.cli", "run", "thermal_ramp", "--gyro", "K1", "--sim", "--speed", "200",
+    args = ["run", "thermal_ramp", "--gyro", "K1", "--sim", "--speed", "200",
             "--seed", "1", "--data-rate", "1", "--json", "--no-progress", "--db", url]
     for p in PARAMS:
         args += ["--param", p]
     hold = tmp_path / "hold"
-    hold.write_text(repr(HOLD_T))
-    env = dict(os.environ, PYTHONPATH=str(ROOT), BENCH_SIM_HOLD_FILE=str(hold))
-    proc = subprocess.Popen(args, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc, rid = start_held_run(args, tmp_path, hold, HOLD_T)
     try:
-        first = proc.stderr.readline().decode()      # with --json, "run <ID>" goes to stderr
-        while first and not first.startswith("run "):
-            first = proc.stderr.readline().decode()
-        assert first.startswith("run "), (first, proc.stderr.read().decode()[-3000:] if proc.poll() else "")
-        rid = int(first.split()[1])
         db = open_database(url)
         _wait_held_mid_ramp(db, rid, proc, hold)
         proc.send_signal(signal.SIGKILL)
