@@ -272,12 +272,19 @@ class GyroStreamSimulator:
 
     def _loop(self) -> None:
         while not self._stop.is_set():
-            self._service_link()
+            if not self._lockstep:
+                self._service_link()               # lockstep: serve() does it, at its bench instant
             readers = [s for s in (self._listener, self._client) if s is not None]
             if self._pty_master is not None:
                 readers.append(self._pty_master)
             if readers:
-                ready, _, _ = select.select(readers, [], [], self._poll_s)
+                try:
+                    ready, _, _ = select.select(readers, [], [], self._poll_s)
+                except (ValueError, OSError):
+                    # serve() (the lockstep thread) closed one of them meanwhile: look again
+                    if any(not isinstance(r, int) and r.fileno() < 0 for r in readers):
+                        continue
+                    raise
             else:
                 time.sleep(0.002)
                 ready = []
@@ -295,6 +302,7 @@ class GyroStreamSimulator:
         """Lockstep: put every frame due up to bench time ``t`` on the line (see module docstring)."""
         if self.error is not None:
             raise RuntimeError(f"gyro simulator stopped: {self.error}") from self.error
+        self._service_link()                       # a drop or a restore takes effect at this instant
         with self._lock:
             if self._client is None and self._listener is not None:
                 ready, _, _ = select.select([self._listener], [], [], 0)

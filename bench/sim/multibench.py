@@ -233,12 +233,10 @@ class MultiGyroBench(SimulatedBench):
             if drop is not None:
                 t_from, t_to = drop
                 if not math.isnan(t_from) and t >= t_from:
-                    unit.gyro.faults.drop_link(None)
-                    unit.gyro._service_link()          # now, at this instant (not when its thread next looks)
+                    unit.gyro.faults.drop_link(None)   # serve() acts on it at this instant
                     drop[0] = math.nan
                 if t_to is not None and math.isnan(drop[0]) and t >= t_to:
                     unit.gyro.faults.restore_link()
-                    unit.gyro._service_link()
                     del self._drops[unit.slot]
             return unit.gyro.serve(t)
         return serve
