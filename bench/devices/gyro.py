@@ -180,17 +180,8 @@ class GyroSerialLink(BackgroundLoop):
 
     def _reconnect_loop(self, gap_from: float) -> None:
         while not self._stop.wait(self.config.reconnect_s):
-            try:
-                port = self._open()
-            except LinkDown as exc:
-                self.last_error = str(exc)
-                continue
-            with self._port_lock:
-                self._port = port
-            self.decoder.reset()
-            self.stats.link_gaps.append((gap_from, self.clock.now()))
-            self.stats.reconnects += 1
-            return
+            if self._try_reconnect(gap_from, self.clock.now()):
+                return
 
     def _on_bytes(self, data: bytes) -> None:
         if self._capturing_replies:
@@ -248,17 +239,23 @@ class GyroSerialLink(BackgroundLoop):
         if t < self._next_attempt or self._stop.is_set():
             return
         self._next_attempt = t + self.config.reconnect_s
+        if self._try_reconnect(self._gap_from if self._gap_from is not None else t, t):
+            self._gap_from = None
+
+    def _try_reconnect(self, gap_from: float, t: float) -> bool:
+        """One reconnect attempt at time ``t``; on success the new port is used and the gap
+        ``(gap_from, t)`` recorded."""
         try:
             port = self._open()
         except LinkDown as exc:
             self.last_error = str(exc)
-            return
+            return False
         with self._port_lock:
             self._port = port
         self.decoder.reset()
-        self.stats.link_gaps.append((self._gap_from if self._gap_from is not None else t, t))
+        self.stats.link_gaps.append((gap_from, t))
         self.stats.reconnects += 1
-        self._gap_from = None
+        return True
 
     def _check_dropped(self, port: serial.SerialBase) -> None:
         """Lockstep: the simulator serves no connection of ours; if it closed ours (a dropped line),
