@@ -199,45 +199,40 @@ class TimeDrift(Effect):
         return ((ds.time - ds.time[0]) / 3600.0)[:, None]
 
 
-class Humidity(Effect):
-    """Bias driven by the relative humidity, which no column records."""
+class _Unrecorded(Effect):
+    """Bias driven by a hidden quantity (``column`` of the run's hidden state) that no column records."""
+
+    kind_name: str
+    column: str
 
     def __init__(self):
-        super().__init__("humidity", explainable=False)
+        super().__init__(self.kind_name, explainable=False)
 
     def signal(self, run, channel):
-        return run.hidden["humidity_pct"]
+        return run.hidden[self.column]
 
     def oracle(self, ds, hidden, channel):
         return hidden[self.kind][:, None]
 
 
-class InternalNode(Effect):
+class Humidity(_Unrecorded):
+    """Bias driven by the relative humidity, which no column records."""
+
+    kind_name, column = "humidity", "humidity_pct"
+
+
+class InternalNode(_Unrecorded):
     """Bias driven by the self-heating of the electronics board: an internal node without a probe,
     heated by a load that changes and that no column records."""
 
-    def __init__(self):
-        super().__init__("internal_node", explainable=False)
-
-    def signal(self, run, channel):
-        return run.hidden["board_self_heating_c"]
-
-    def oracle(self, ds, hidden, channel):
-        return hidden[self.kind][:, None]
+    kind_name, column = "internal_node", "board_self_heating_c"
 
 
-class BiasStep(Effect):
+class BiasStep(_Unrecorded):
     """A step in the bias at a random time of each run, not driven by temperature (a shock, a contact
     settling): nothing recorded explains it."""
 
-    def __init__(self):
-        super().__init__("bias_step", explainable=False)
-
-    def signal(self, run, channel):
-        return run.hidden["bias_step"]
-
-    def oracle(self, ds, hidden, channel):
-        return hidden[self.kind][:, None]
+    kind_name, column = "bias_step", "bias_step"
 
 
 class ModeHop(Effect):
