@@ -115,3 +115,27 @@ def test_serials_and_malformed_text_give_clear_errors(tmp_path):
         parse_w1_slave("72 01 4b 46 7f ff 0e 10 57 : crc=57 YES\n")
     with pytest.raises(KeyError, match="t2"):
         W1TreeSimulator(TableSource({"t1": 20}), SteppedClock(), tmp_path, PROBES).update()
+
+
+def test_same_text_is_not_parsed_again_but_counted_again(tmp_path, monkeypatch):
+    """A probe's file changes only with a new conversion: the same text gives the same reading (and the
+    same fault, counted at every read) without being parsed again; a new text is parsed."""
+    from bench.config import ProbeConfig
+    from bench.devices import ds18b20
+    from bench.sim.w1 import BUS_OPEN_SCRATCHPAD, good_scratchpad, w1_slave_text
+
+    serial = "0000a1b2c3d4"
+    path = tmp_path / f"28-{serial}" / "w1_slave"
+    path.parent.mkdir()
+    arr = ds18b20.W1ProbeArray(ProbeConfig(w1_root=str(tmp_path), probes={"t1": serial}))
+    parsed = []
+    real_parse = ds18b20.parse_w1_slave
+    monkeypatch.setattr(ds18b20, "parse_w1_slave", lambda text: parsed.append(text) or real_parse(text))
+    path.write_text(w1_slave_text(BUS_OPEN_SCRATCHPAD, bytes(9))[0])
+    assert [arr.read_one("t1").celsius for _ in range(3)] == [None] * 3
+    assert arr.fault_counts["t1"][ds18b20.FAULT_CRC] == 3 and len(parsed) == 1
+    path.write_text(w1_slave_text(good_scratchpad(21.5), bytes(9))[0])
+    assert [arr.read_one("t1").celsius for _ in range(2)] == [21.5, 21.5]
+    assert arr.good_reads["t1"] == 2 and len(parsed) == 2
+    path.write_text("garbage\n")
+    assert arr.read_one("t1").fault.startswith(f"{ds18b20.FAULT_MALFORMED}: {path}: w1_slave has 1 line")

@@ -181,6 +181,8 @@ def _read_text(path: str) -> str:
         chunks = []
         while chunk := os.read(fd, 4096):
             chunks.append(chunk)
+            if len(chunk) < 4096:          # a short read of a regular or sysfs file is its end
+                break
     finally:
         os.close(fd)
     return b"".join(chunks).decode("ascii", "replace")
@@ -195,6 +197,9 @@ class W1ProbeArray:
         self.fault_counts: dict[str, Counter[str]] = {name: Counter() for name in self.probes}
         self.good_reads: Counter[str] = Counter()
         self._paths: dict[str, str] = {}         # w1_slave path per probe (read every 2 s of bench time)
+        # per probe: the last text read and what it said (celsius, fault kind, detail): the file changes
+        # only with a new conversion result, so the same text is not parsed and checked again
+        self._last: dict[str, tuple[str, float | None, str | None, str]] = {}
 
     def path_of(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}" / "w1_slave"
@@ -206,11 +211,15 @@ class W1ProbeArray:
             text = _read_text(path)
         except OSError as exc:
             return self._reject(name, FAULT_VANISHED, f"{path}: {exc.strerror or exc}")
-        try:
-            read = parse_w1_slave(text)
-        except ProtocolError as exc:
-            return self._reject(name, FAULT_MALFORMED, f"{path}: {exc}")
-        celsius, kind, detail = classify(read)
+        last = self._last.get(name)
+        if last is not None and last[0] == text:
+            _, celsius, kind, detail = last
+        else:
+            try:
+                celsius, kind, detail = classify(parse_w1_slave(text))
+            except ProtocolError as exc:
+                celsius, kind, detail = None, FAULT_MALFORMED, str(exc)
+            self._last[name] = (text, celsius, kind, detail)
         if kind is not None:
             return self._reject(name, kind, f"{path}: {detail}")
         self.good_reads[name] += 1
