@@ -15,6 +15,7 @@ from pydantic import ValidationError
 from api.app import create_app
 from bench.config import BenchConfig, GyroConfig, GyroSlot, ProbeConfig, PsuConfig, SlotPower
 from bench.devices.psu import PsuChannel, PsuCommandError, ScpiPowerSupply
+from bench.errors import ProtocolError
 from bench.engine import Engine, EngineConfig
 from bench.engine.factory import build_devices, close_devices, engine_config_for, make_fit_hook
 from bench.engine.sqlstore import SqlRunStore, new_run, run_report
@@ -118,6 +119,13 @@ def test_psu_channels_over_one_line():
         assert ch[1].reading()[2] is False
         with pytest.raises(PsuCommandError, match=r"-222"):
             PsuChannel(supply, 4, lock).output(True)
+        # every channel in one program message: the same answers as one channel at a time
+        requests = len(sim.received.entries())
+        assert supply.channel_readings([1, 2, 3]) == [ch[n].reading() for n in (1, 2, 3)]
+        assert len(sim.received.entries()) == requests + 1 + 3
+        # channel 4 does not exist: its INST:NSEL is refused, the echo shows channel 2 still selected
+        with pytest.raises(ProtocolError, match=r"channel 4 reading '2;"):
+            supply.channel_readings([2, 4])
     finally:
         supply.close()
         sim.stop()
@@ -455,10 +463,57 @@ def test_own_supply_unreachable_suspends_the_run_under_suspend(tmp_path):
         db.dispose()
 
 
+def test_shared_supply_unreachable_is_one_bench_fault(tmp_path):
+    """The bench's multi-channel supply (g1, g2 on channels 1, 2) refuses connections from the start to
+    bench time +60 s, while g3 has a supply of its own: that is one condition of the bench (the run
+    suspends once, "power supply link down"), not a fault of g1 and g2; g3 is untouched; g1 and g2 get
+    their settings and power sent again once the supply answers, and every unit's run completes."""
+    db = open_database(f"sqlite:///{tmp_path / 'psu-shared.sqlite'}")
+    clock = lockstep_clock(None, 26)
+    bench = MultiGyroBench(units=3, clock=clock, seed=26, own_supplies=["g3"]).start()
+    try:
+        cfg = bench.bench_config()      # unit_faults "continue": a unit's own faults would not suspend
+        assert cfg.unit_faults == "continue" and cfg.slot("g2").power.channel == 2
+        ec = engine_config_for(clock).model_copy(update={"settle_s": 20.0})
+        t0 = clock.now()
+        bench.drop_supply(None, t0, t0 + 60.0)
+        run_id, status, t_start = _plan_run(db, bench, clock, cfg, ec, _power_plan())
+        on_at_end = [bench.unit(s).psu_model.output_on for s in ("g1", "g2", "g3")]
+        shared = [e.request.upper() for e in bench.psu.received.entries()]
+        own = [e.request.upper() for e in bench.own_psus["g3"].received.entries()]
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed"
+        report = run_report(db, run_id)
+        (susp,) = report["suspensions"]
+        assert susp["reason"].startswith("power supply link down"), susp
+        assert "g3" not in susp["reason"]
+        assert susp["t_from"] == pytest.approx(t_start, abs=2.0)
+        assert susp["t_to"] == pytest.approx(t_start + 60.0 + 20.0, abs=12.5)     # supply back (read every 10 s), settled
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed"] * 3
+        assert units["g3"]["gaps"] == []
+        kinds = [k for k, _ in _events(db, run_id)]
+        assert "unit_fault" not in kinds and "unit_power_failed" not in kinds
+        assert kinds.count("power_failed") == 1 and kinds.count("unit_power_restored") == 2
+        assert not any(k in ("run_failed", "step_failed") for k in kinds)
+        assert on_at_end == [False, False, False]           # the safe state reached every channel
+        # power sent again on both channels once the supply answered, then off in the safe state
+        for ch in (1, 2):
+            outp = [c for c in shared if c.startswith(f"INST:NSEL {ch};:OUTP") and not c.endswith("?")]
+            assert outp[-2:] == [f"INST:NSEL {ch};:OUTP ON", f"INST:NSEL {ch};:OUTP OFF"], shared
+        assert [c for c in own if c.startswith("OUTP") and not c.endswith("?")] == ["OUTP ON", "OUTP OFF"]
+    finally:
+        db.dispose()
+
+
 def test_drop_supply_needs_an_own_supply():
     bench = MultiGyroBench(units=2, clock=lockstep_clock(None, 23), own_supplies=["g2"])
     with pytest.raises(ValueError, match="channel 1 of the bench's supply"):
         bench.drop_supply("g1", 10.0)
+    with pytest.raises(ValueError, match="the bench's supply.*not after"):
+        bench.drop_supply(None, 10.0, 5.0)
     with pytest.raises(ValueError, match="at least one slot stays"):
         MultiGyroBench(units=2, clock=lockstep_clock(None, 23), own_supplies=["g1", "g2"])
     with pytest.raises(ValueError, match="own_supplies: no slot g5"):

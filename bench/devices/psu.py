@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Sequence
 
 from bench.config import PsuConfig
 from bench.devices.serial_line import SerialLine
@@ -39,6 +40,7 @@ class ScpiPowerSupply:
         self.config = config
         self.line = SerialLine(config.url, baudrate=config.baudrate, timeout_s=config.timeout_s,
                                name="power supply", write_terminator=b"\n", read_terminator=b"\n")
+        self.channel_lock = threading.Lock()     # held by its channels' requests (``PsuChannel``)
 
     def guard_requests(self, guard: Callable[[], None] | None) -> None:
         """Call ``guard`` before every request put on the line (it raises to keep one off)."""
@@ -130,6 +132,31 @@ class ScpiPowerSupply:
         if len(parts) != 3 or not all(_NUMBER.fullmatch(p) for p in parts[:2]) or parts[2].upper() not in ("0", "1", "ON", "OFF"):
             raise ProtocolError(f"power supply at {self.config.url}: MEAS:VOLT?;:MEAS:CURR?;:OUTP? returned {reply!r}")
         return float(parts[0]), float(parts[1]), parts[2].upper() in ("1", "ON")
+
+    def channel_readings(self, channels: Sequence[int]) -> list[tuple[float, float, bool]]:
+        """(volts, amps, output on) of each of ``channels`` of a multi-channel supply in one program
+        message, ``INST:NSEL n;:INST:NSEL?;:MEAS:VOLT?;:MEAS:CURR?;:OUTP?`` per channel: one round trip
+        for the whole supply instead of one per channel.  The echoed selection proves each group was
+        answered for its own channel (a refused ``INST:NSEL`` would leave the previous one selected);
+        anything else is a ``ProtocolError`` (read the channels one by one to learn which)."""
+        if not channels:
+            return []
+        message = ";:".join(f"INST:NSEL {int(ch)};:INST:NSEL?;:MEAS:VOLT?;:MEAS:CURR?;:OUTP?" for ch in channels)
+        with self.channel_lock:
+            reply = self.query(message)
+        parts = [p.strip() for p in reply.split(";")]
+        if len(parts) != 4 * len(channels):
+            raise ProtocolError(f"power supply at {self.config.url}: {len(parts)} answers to the readings of "
+                                f"channels {list(channels)}, expected {4 * len(channels)}: {reply!r}")
+        out = []
+        for k, ch in enumerate(channels):
+            sel, volts, amps, on = parts[4 * k:4 * k + 4]
+            if (not _NUMBER.fullmatch(sel) or float(sel) != ch or not _NUMBER.fullmatch(volts)
+                    or not _NUMBER.fullmatch(amps) or on.upper() not in ("0", "1", "ON", "OFF")):
+                raise ProtocolError(f"power supply at {self.config.url}: channel {ch} reading "
+                                    f"{';'.join(parts[4 * k:4 * k + 4])!r} in {reply!r}")
+            out.append((float(volts), float(amps), on.upper() in ("1", "ON")))
+        return out
 
     def apply_config(self) -> None:
         """Set the configured voltage and current limit (output state unchanged)."""

@@ -17,7 +17,9 @@ from bench.interfaces import Chamber, GyroFrame, GyroLink, LinkStats, PowerSuppl
 
 @dataclass
 class UnitDevices:
-    """One gyro slot of a fixture: its line, its probes, its power and the settings of that power."""
+    """One gyro slot of a fixture: its line, its probes, its power and the settings of that power.
+    ``shared_power``: ``psu`` is a channel of a supply several slots share (its link is the bench's,
+    not the unit's: ``bench.engine.fixture``)."""
 
     slot: str
     gyro: GyroLink
@@ -25,6 +27,7 @@ class UnitDevices:
     psu: PowerSupply
     voltage_v: float
     current_limit_a: float
+    shared_power: bool = False
 
 
 @dataclass
@@ -72,8 +75,8 @@ class Devices:
         if not self.units:
             return Devices(**{f.name: wrap(getattr(self, f.name)) for f in fields(self)
                               if f.name not in ("units", "shared")})
-        units = [UnitDevices(u.slot, wrap(u.gyro), wrap(u.probes), wrap(u.psu), u.voltage_v, u.current_limit_a)
-                 for u in self.units]
+        units = [UnitDevices(u.slot, wrap(u.gyro), wrap(u.probes), wrap(u.psu), u.voltage_v, u.current_limit_a,
+                             u.shared_power) for u in self.units]
         return Devices.fixture(wrap(self.chamber), wrap(self.turntable), units, self.shared)
 
 

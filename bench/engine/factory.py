@@ -53,7 +53,7 @@ def build_devices(config: BenchConfig, clock: Clock) -> Devices:
         return Devices(chamber=chamber, turntable=turntable, gyro=GyroSerialLink(config.gyro, clock),
                        probes=W1ProbeArray(config.probes), psu=ScpiPowerSupply(config.psu))
     shared = ScpiPowerSupply(config.psu) if any(s.power.channel is not None for s in config.gyros) else None
-    lock = threading.Lock()
+    lock = shared.channel_lock if shared is not None else threading.Lock()
     units = []
     for slot in config.gyros:
         own = slot.power.psu
@@ -64,7 +64,8 @@ def build_devices(config: BenchConfig, clock: Clock) -> Devices:
             probes=W1ProbeArray(slot.probes), psu=psu,
             voltage_v=slot.power.voltage_v if slot.power.voltage_v is not None else supply_cfg.voltage_v,
             current_limit_a=(slot.power.current_limit_a if slot.power.current_limit_a is not None
-                             else supply_cfg.current_limit_a)))
+                             else supply_cfg.current_limit_a),
+            shared_power=own is None))
     return Devices.fixture(chamber, turntable, units, shared=[shared] if shared is not None else [])
 
 

@@ -22,6 +22,18 @@ then due the commanded state: once a reading of it succeeds again, its voltage, 
 output last commanded are sent again.  A unit whose supply missed a power-on is a line fault (only
 its frames coming back end it).
 
+A supply several units share (a multi-channel supply, each unit on a channel: ``UnitDevices.shared_power``)
+is bench equipment like the chamber and the table: when it does not answer (its link down or no reply,
+on a reading or a command), that is one condition of the bench, "power supply link down", which always
+suspends the run, not a fault of each unit on it.  Its channels are read together on the table's
+schedule, in one program message (``ScpiPowerSupply.channel_readings``); when that reply is not
+understood they are read one by one, and after the first that does not answer the others are not asked
+again in that round.
+The units whose command it missed are due their commanded state as above (sent again once it answers),
+and their frames stopping meanwhile is part of the bench's condition (reason prefixed with the slot)
+until their frames come back.  A channel's own refusal (an SCPI error, a reply not understood) is still
+that unit's.
+
 For steps the fixture reads like one bench (``StepReadings``): probe names are ``<slot>/<probe>``
 of the units not faulted.
 """
@@ -36,8 +48,9 @@ from bench.engine.config import EngineConfig
 from bench.engine.devices import Devices, PowerBank, UnitDevices, apply_settings
 from bench.engine.monitor import Acquisition, TelemetrySchedule
 from bench.engine.outcomes import RunOutcome
-from bench.engine.store import RunStore
-from bench.errors import DeviceError
+from bench.engine.store import PsuReading, RunStore
+from bench.engine.suspenders import LinkDown as LinkDownSuspender
+from bench.errors import DeviceError, DeviceTimeout, LinkDown
 from bench.interfaces import ChamberStatus
 
 LogFn = Callable[..., None]
@@ -58,6 +71,8 @@ class Unit:
     link_gaps_at_fault: int = 0
     frames_at_fault: int = 0
     line_fault: bool = False          # the line or its frames failed: only new frames end the fault
+    supply_wait: bool = False         # its shared supply missed a command: the bench's fault until frames come back
+    frames_at_power: int = 0          # frames when its commanded power was sent again
     faults: list[dict[str, Any]] = field(default_factory=list)
 
     @property
@@ -79,6 +94,8 @@ class FixtureAcquisition:
         self.bench = Acquisition(devices, store, run_id, config, engine_config, log, now)
         for source in UNIT_SOURCES:
             self.bench.suspenders[source] = []
+        if any(unit_dev.shared_power for unit_dev in devices.units):     # the shared supply's link is the bench's
+            self.bench.suspenders["psu"] = [LinkDownSuspender("psu")]
         self.units: list[Unit] = []
         for unit_dev in devices.units:
             slot = config.slot(unit_dev.slot)
@@ -92,6 +109,9 @@ class FixtureAcquisition:
             if set_format is not None:
                 set_format(unit_runs[unit_dev.slot], slot.gyro.frame, slot.gyro.data_rate_hz)
             self.units.append(Unit(unit_dev.slot, unit_runs[unit_dev.slot], acq, unit_dev))
+        # the supply the shared_power units' channels belong to, and each one's channel
+        self.shared_supply = devices.shared[0] if len(devices.shared) == 1 else None
+        self.channels = {u.slot: config.slot(u.slot).power.channel for u in self.units if u.dev.shared_power}
         self.power = devices.psu if isinstance(devices.psu, PowerBank) else None
         if self.power is not None:
             self.power.unit_failed = self._power_failed
@@ -120,19 +140,71 @@ class FixtureAcquisition:
         status = self.bench.read_chamber(now) if chamber else None
         table = self.bench.read_table(now) if table_psu else None
         self.bench.record_telemetry(now, status, table, None)
+        shared = self._read_shared_supply(now) if table_psu and self.channels else {}
         for unit in self.units:
-            psu = unit.acq.read_psu(now) if table_psu else None
+            psu = None
+            if table_psu:
+                psu = shared.get(unit.slot) if unit.dev.shared_power else unit.acq.read_psu(now)
             if psu is not None and unit.power_due:
                 self._power_again(unit, now)
             if status is not None:
                 unit.acq.status, unit.acq.status_t = status, now
             unit.acq.record_telemetry(now, status, table, psu)
 
+    def _read_shared_supply(self, now: float) -> dict[str, PsuReading]:
+        """The shared supply's channels, by slot (those read): in one message where the supply offers it."""
+        units = [unit for unit in self.units if unit.slot in self.channels]
+        together = getattr(self.shared_supply, "channel_readings", None)
+        if together is not None:
+            try:
+                values = together([self.channels[unit.slot] for unit in units])
+            except (LinkDown, DeviceTimeout) as exc:
+                self.bench.link_failed("psu", exc, now)
+                return {}
+            except DeviceError:
+                values = None              # not understood: one channel at a time tells which
+            if values is not None:
+                self.bench.link_ok("psu", now)
+                out = {}
+                for unit, (volts, amps, on) in zip(units, values):
+                    out[unit.slot] = PsuReading(volts=volts, amps=amps, on=on)
+                    unit.acq.psu_read(out[unit.slot], now)
+                return out
+        out = {}
+        for unit in units:
+            reading = self._read_shared(unit, now)
+            if reading is not None:
+                out[unit.slot] = reading
+            elif "psu_link" in self.bench.conditions:
+                break                      # the supply does not answer: not asked again this round
+        return out
+
+    def _read_shared(self, unit: Unit, now: float) -> PsuReading | None:
+        """The unit's channel of the shared supply: not answering is the bench's condition."""
+        try:
+            reading = unit.acq.measure_psu()
+        except (LinkDown, DeviceTimeout) as exc:
+            self.bench.link_failed("psu", exc, now)
+            return None
+        except DeviceError as exc:             # the supply answered: this channel's own trouble
+            self.bench.link_ok("psu", now)
+            unit.acq.link_failed("psu", exc, now)
+            return None
+        self.bench.link_ok("psu", now)
+        unit.acq.psu_read(reading, now)
+        return reading
+
     # ---- conditions and unit faults -------------------------------------------------------------
     def _update_conditions(self, now: float) -> None:
         conditions = dict(self.bench.conditions)
         for unit in self.units:
             own = unit.acq.conditions
+            if unit.supply_wait:
+                if not unit.power_due and (unit.acq.frames_total > unit.frames_at_power or not self._powered()):
+                    unit.supply_wait = False
+                elif "gyro_frames" in own:     # no power for its frames: the shared supply's fault
+                    conditions[f"{unit.slot}:gyro_frames"] = f"{unit.slot}: {own['gyro_frames']} (its shared supply)"
+                    own = {key: text for key, text in own.items() if key != "gyro_frames"}
             if self.policy == "suspend":
                 conditions.update({f"{unit.slot}:{key}": f"{unit.slot}: {text}" for key, text in own.items()})
             elif own and not unit.faulted:
@@ -171,6 +243,13 @@ class FixtureAcquisition:
         """``PowerBank.unit_failed``: a command to the unit's supply failed."""
         unit, now = self._unit(slot), self.clock_now()
         unit.power_due = True
+        if unit.dev.shared_power and isinstance(error, (LinkDown, DeviceTimeout)):
+            unit.supply_wait = True
+            if "psu_link" not in self.bench.conditions:
+                self.log("warning", "power_failed", f"shared power supply: {what} for gyro unit {slot} failed: "
+                         f"{error}; the run suspends until it answers", slot=slot, unit_run=unit.run_id)
+            self.bench.link_failed("psu", error, now)
+            return
         self.log("warning", "unit_power_failed", f"gyro unit {slot}: power supply {what} failed: {error}",
                  slot=slot, unit_run=unit.run_id)
         unit.acq.link_failed("psu", error, now)
@@ -184,9 +263,13 @@ class FixtureAcquisition:
             if on is not None:
                 unit.dev.psu.output(on)
         except DeviceError as exc:
-            unit.acq.link_failed("psu", exc, now)
+            if unit.dev.shared_power and isinstance(exc, (LinkDown, DeviceTimeout)):
+                self.bench.link_failed("psu", exc, now)
+            else:
+                unit.acq.link_failed("psu", exc, now)
             return
         unit.power_due = False
+        unit.frames_at_power = unit.acq.frames_total
         state = "" if on is None else f", output {'on' if on else 'off'}"
         self.log("info", "unit_power_restored", f"gyro unit {unit.slot}: power supply answers again; "
                  f"{unit.dev.voltage_v:g} V / {unit.dev.current_limit_a:g} A limit{state} sent again",

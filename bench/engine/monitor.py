@@ -216,23 +216,32 @@ class Acquisition:
         return table
 
     def read_psu(self, now: float) -> PsuReading | None:
-        psu_reading: PsuReading | None
         try:
-            psu = self.devices.psu
-            combined = getattr(psu, "reading", None)      # one round trip where the driver offers it
-            if combined is not None:
-                volts, amps, on = combined()
-                psu_reading = PsuReading(volts=volts, amps=amps, on=on)
-            else:
-                psu_reading = PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
+            psu_reading = self.measure_psu()
         except DeviceError as exc:
-            self._link("psu", exc)
-            psu_reading = None
-        else:
-            self._link("psu", None)
-            self.psu = psu_reading
-        self._watch("psu", now)
+            self.link_failed("psu", exc, now)
+            return None
+        self.psu_read(psu_reading, now)
         return psu_reading
+
+    def measure_psu(self) -> PsuReading:
+        """The supply's V / I / output now (``DeviceError`` when it does not answer); nothing recorded."""
+        psu = self.devices.psu
+        combined = getattr(psu, "reading", None)      # one round trip where the driver offers it
+        if combined is not None:
+            volts, amps, on = combined()
+            return PsuReading(volts=volts, amps=amps, on=on)
+        return PsuReading(volts=psu.measure_voltage(), amps=psu.measure_current(), on=psu.output_state())
+
+    def psu_read(self, reading: PsuReading, now: float) -> None:
+        """A supply reading taken (``measure_psu``): the supply's link is up, its suspenders look at it."""
+        self.psu = reading
+        self.link_ok("psu", now)
+
+    def link_ok(self, source: str, now: float) -> None:
+        """``source`` answered (a read or a command elsewhere): its link is up again."""
+        self._link(source, None)
+        self._watch(source, now)
 
     def record_telemetry(self, now: float, status: ChamberStatus | None, table: dict[int, AxisState] | None,
                          psu_reading: PsuReading | None) -> None:

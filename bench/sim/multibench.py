@@ -23,7 +23,8 @@ the fault lands on the same bench instant at any speed and load.
 ``drop_supply(slot, t_from, t_to=None)``: the own supply of that slot becomes unreachable at bench
 time ``t_from`` (its connections closed, its port refusing) and listens again at ``t_to``; the
 supply itself (its output, its settings) is unchanged meanwhile, as a supply behind a broken
-serial-to-TCP bridge.  Lockstep only, like ``drop_line``.
+serial-to-TCP bridge.  ``drop_supply(None, ...)`` does the same to the bench's multi-channel supply
+(every slot on its channels at once).  Lockstep only, like ``drop_line``.
 """
 from __future__ import annotations
 
@@ -189,7 +190,7 @@ class MultiGyroBench(SimulatedBench):
         self.psu_channels = {u.slot: k + 1 for k, u in enumerate(on_channels)}
         self.own_psus = {u.slot: PsuSimulator(u.psu_model, self.clock) for u in self.units if u.slot in own_supplies}
         self._drops: dict[str, list[float | None]] = {}
-        self._supply_drops: dict[str, list[float | None]] = {}
+        self._supply_drops: dict[str | None, list[float | None]] = {}     # slot (None: the bench's supply)
 
     # ---------------------------------------------------------------- faults by bench time
     def drop_line(self, slot: str, t_from: float, t_to: float | None = None) -> None:
@@ -198,26 +199,32 @@ class MultiGyroBench(SimulatedBench):
             raise ValueError(f"drop_line {slot}: t_to {t_to} is not after t_from {t_from}")
         self._drops[unit.slot] = [float(t_from), None if t_to is None else float(t_to)]
 
-    def drop_supply(self, slot: str, t_from: float, t_to: float | None = None) -> None:
-        unit = self.unit(slot)
-        if unit.slot not in self.own_psus:
-            raise ValueError(f"drop_supply {slot}: the slot is powered by channel {self.psu_channels[unit.slot]} of "
-                             f"the bench's supply, not by a supply of its own (own_supplies)")
+    def drop_supply(self, slot: str | None, t_from: float, t_to: float | None = None) -> None:
+        """``slot``'s own supply (None: the bench's multi-channel supply) unreachable from ``t_from`` to ``t_to``."""
+        if slot is not None:
+            unit = self.unit(slot)
+            if unit.slot not in self.own_psus:
+                raise ValueError(f"drop_supply {slot}: the slot is powered by channel {self.psu_channels[unit.slot]} of "
+                                 f"the bench's supply, not by a supply of its own (own_supplies); "
+                                 f"drop_supply(None, ...) drops the bench's supply")
+            slot = unit.slot
+        what = slot or "(the bench's supply)"
         if not self.lockstep:
-            raise ValueError(f"drop_supply {slot}: faults by bench time need the lockstep clock")
+            raise ValueError(f"drop_supply {what}: faults by bench time need the lockstep clock")
         if t_to is not None and t_to <= t_from:
-            raise ValueError(f"drop_supply {slot}: t_to {t_to} is not after t_from {t_from}")
-        self._supply_drops[unit.slot] = [float(t_from), None if t_to is None else float(t_to)]
+            raise ValueError(f"drop_supply {what}: t_to {t_to} is not after t_from {t_from}")
+        self._supply_drops[slot] = [float(t_from), None if t_to is None else float(t_to)]
 
     def _serve_supplies(self, t: float) -> dict:
         """Lockstep: the supply drops due at bench time ``t`` (``drop_supply``), at that instant."""
         for slot, drop in list(self._supply_drops.items()):
+            supply = self.psu if slot is None else self.own_psus[slot]
             t_from, t_to = drop
             if not math.isnan(t_from) and t >= t_from:
-                self.own_psus[slot].faults.drop_link(refuse_s=math.inf)
+                supply.faults.drop_link(refuse_s=math.inf)
                 drop[0] = math.nan
             if t_to is not None and math.isnan(drop[0]) and t >= t_to:
-                self.own_psus[slot].faults.restore_link()
+                supply.faults.restore_link()
                 del self._supply_drops[slot]
         return {}
 
@@ -256,8 +263,7 @@ class MultiGyroBench(SimulatedBench):
                 self.clock.serve(unit.serve_name, self._serve_gyro(unit))
             for unit in self.units:
                 self.clock.serve(unit.w1_name, unit.w1.serve)
-            if self.own_psus:
-                self.clock.serve("psu:faults", self._serve_supplies)
+            self.clock.serve("psu:faults", self._serve_supplies)
         self.started = True
         return self
 
