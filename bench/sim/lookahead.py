@@ -266,7 +266,11 @@ class Lookahead:
     def at_instant(self) -> Iterator[None]:
         """The physics at the last served instant while the block is open (a snapshot of the bench),
         then back where it was, block and all: a checkpoint every two bench minutes would otherwise
-        drop the block each time and integrate again from the shortest look-ahead."""
+        drop the block each time and integrate again from the shortest look-ahead.  The state reached
+        at the instant becomes the block's start (an instant already served, the same steps on the same
+        inputs), so the next settle integrates again only from there, not from the block's start: with
+        blocks of up to ``MAX_AHEAD_S`` and a checkpoint every two minutes, every unit re-integrated on
+        average half a block at each checkpoint."""
         with self._lock:
             blk, ph = self._block, self.physics
             if blk is None or ph._state.t <= self._t:
@@ -274,11 +278,12 @@ class Lookahead:
                 return
             ahead = ph.checkpoint()
             self._settle()
+            here = ph.checkpoint()
             try:
                 yield
             finally:
                 ph.rollback(ahead)
-                self._block = blk
+                self._block = _Block(here, self._t, blk.index, blk.out)
 
     def reset(self, t: float) -> None:
         """After the physics was restored from a snapshot taken at bench time ``t``."""
