@@ -103,6 +103,11 @@ class SqlRunStore:
         self._formats: dict[int, dict[str, Any]] = {}     # per-run frame kind / rate (multi-gyro units)
         self._table: dict[int, dict[int, AxisState]] = {}
         self._lock = threading.Lock()
+        # ``runs.live`` is one JSON document edited read-modify-write by the engine (status, plan, fits)
+        # and by the heartbeat thread (progress): one edit at a time in this process, or a heartbeat that
+        # read the document before the final status and wrote after it erases the run's outcome.
+        # (PostgreSQL also locks the row across processes: ``_owned`` reads it FOR UPDATE.)
+        self._live_lock = threading.Lock()
         # the executing worker's lease (bench.engine.lease.RunLease), set by the worker: every owner write
         # below checks, in its own transaction with the run row locked, that the row still names it
         self.lease = None
@@ -161,7 +166,7 @@ class SqlRunStore:
     # ---- run --------------------------------------------------------------------------------
     def create_run(self, run_id: str, plan: dict[str, Any], summary: dict[str, Any], t: float) -> None:
         rid = run_key(run_id)
-        with self.db.session() as s:
+        with self._live_lock, self.db.session() as s:
             run = self._owned(s, rid)
             if run.checkpoint is not None:
                 raise StorageError(f"run {rid} has already started (status {run.status}); resume it instead")
@@ -188,7 +193,7 @@ class SqlRunStore:
     def set_run_status(self, run_id: str, status: str, t: float, reason: str | None = None) -> None:
         rid = run_key(run_id)
         stored = RunStatus.COMPLETED.value if status == RunOutcome.STOPPED else str(status)
-        with self.db.session() as s:
+        with self._live_lock, self.db.session() as s:
             run = self._owned(s, rid)
             live = dict(run.live or {})
             if stored == run.status and live.get("engine_status") == status:
@@ -206,7 +211,7 @@ class SqlRunStore:
     def heartbeat(self, run_id: str | int, owner: str, progress: dict[str, Any] | None = None) -> None:
         """Mark ``owner`` as the live executor of the run (and refresh ``live["progress"]``)."""
         rid = run_key(run_id)
-        with self.db.session() as s:
+        with self._live_lock, self.db.session() as s:
             run = self._owned(s, rid)
             run.worker = owner
             run.heartbeat_at = utcnow()
@@ -333,7 +338,7 @@ class SqlRunStore:
         self.writer(rid).end_suspension(t_to)
 
     def save_fit(self, run_id: str, step_index: int, result: dict[str, Any]) -> None:
-        with self.db.session() as s:
+        with self._live_lock, self.db.session() as s:
             run = self._owned(s, run_key(run_id))
             live = dict(run.live or {})
             fits = dict(live.get("fits") or {})
