@@ -169,7 +169,11 @@ function totalText(run) {
 function renderLatest(latest) {
   const rows = [];
   if (latest.chamber) {
-    rows.push(["Chamber air", `${fmtNum(latest.chamber.pv_c)} °C (set point ${fmtNum(latest.chamber.setpoint_c)} °C, ramp ${fmtNum(latest.chamber.ramp_setpoint_c)} °C)`]);
+    // the set point the controller works to, as the chamber plot draws it: the ramping one while a ramp
+    // runs (the set-point register keeps the ramp's start until it ends), else the register
+    const ramping = Number.isFinite(latest.chamber.ramp_setpoint_c);
+    const sp = ramping ? latest.chamber.ramp_setpoint_c : latest.chamber.setpoint_c;
+    rows.push(["Chamber air", `${fmtNum(latest.chamber.pv_c)} °C (set point ${fmtNum(sp)} °C${ramping ? ", ramping" : ""})`]);
     if (latest.chamber.alarm) rows.push(["Chamber alarm", String(latest.chamber.alarm)]);
   }
   if (latest.probes) {
