@@ -187,6 +187,10 @@ def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
     plot.screenshot(path=str(ARTIFACTS / "15-plot-readout.png"))
     assert "°C" in readout and "chamber air" in readout and "set point (ramping)" in readout, readouts
     assert re.match(r"bench time since the first recorded second: [\d.]+ h;", readout), readout   # x with its unit
+    # before the ramp (the soak at 30 C) the set-point trace goes on at the register's 30 C, not blank
+    page.mouse.move(box["x"] + box["width"] * 0.06, box["y"] + box["height"] * 0.5)
+    page.wait_for_function("() => document.getElementById('plot-chamber').dataset.cursor.includes('set point')")
+    assert "set point (ramping): 30 °C" in plot.get_attribute("data-cursor"), plot.get_attribute("data-cursor")
     page.mouse.wheel(0, -300)
     page.wait_for_function("() => document.getElementById('plot-chamber').dataset.view !== ''")
     zoomed = plot.get_attribute("data-view")
