@@ -33,6 +33,21 @@ def test_every_database_command_has_db(command):
     assert re.search(r"--db\s", out), out
 
 
+def test_every_option_and_argument_says_what_it_is():
+    import typer
+
+    def commands(cmd, path):
+        if hasattr(cmd, "commands"):
+            for name, sub in cmd.commands.items():
+                yield from commands(sub, path + [name])
+        else:
+            yield path, cmd
+
+    bare = [f"bench {' '.join(path)} {param.name}" for path, cmd in commands(typer.main.get_command(app), [])
+            for param in cmd.params if not (getattr(param, "help", None) or "").strip()]
+    assert not bare, bare
+
+
 @pytest.fixture()
 def stored(tmp_path, monkeypatch):
     """Two runs imported with ``--db`` into a fresh SQLite file, while $BENCH_DATABASE_URL names a database

@@ -13,6 +13,7 @@ Screenshots go to ``test-artifacts/dashboard/``.
 from __future__ import annotations
 
 import datetime as dt
+import re
 
 import pytest
 
@@ -159,6 +160,10 @@ def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
     e2, r2, text = sample()
     assert e2 > e1 and r2 < r1, (e1, r1, e2, r2)          # the remaining time shrinks as time elapses
     assert "%" not in page.text_content("#live")           # one progress figure: the bar
+    # the latest chamber reading names the set point the plot draws (the ramping one), beside the air
+    latest = page.text_content("#latest")
+    m = re.search(r"Chamber air\s*(-?[\d.]+) °C \(set point (-?[\d.]+) °C, ramping\)", latest)
+    assert m and abs(float(m.group(1)) - float(m.group(2))) < 3.0, latest
     page.wait_for_function("() => (document.getElementById('plot-chamber').dataset.series || '')"
                            ".includes('set point (ramping)')")
     # the ramping set point follows the ramp: it went down from 30 C towards 12 C, as the air did
@@ -181,6 +186,11 @@ def test_run_page_is_consistent_while_a_ramp_runs(service, browser):
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     plot.screenshot(path=str(ARTIFACTS / "15-plot-readout.png"))
     assert "°C" in readout and "chamber air" in readout and "set point (ramping)" in readout, readouts
+    assert re.match(r"bench time since the first recorded second: [\d.]+ h;", readout), readout   # x with its unit
+    # before the ramp (the soak at 30 C) the set-point trace goes on at the register's 30 C, not blank
+    page.mouse.move(box["x"] + box["width"] * 0.06, box["y"] + box["height"] * 0.5)
+    page.wait_for_function("() => document.getElementById('plot-chamber').dataset.cursor.includes('set point')")
+    assert "set point (ramping): 30 °C" in plot.get_attribute("data-cursor"), plot.get_attribute("data-cursor")
     page.mouse.wheel(0, -300)
     page.wait_for_function("() => document.getElementById('plot-chamber').dataset.view !== ''")
     zoomed = plot.get_attribute("data-view")

@@ -10,6 +10,7 @@ opens the fit report.  Screenshots go to ``test-artifacts/dashboard/``.
 """
 from __future__ import annotations
 
+import re
 import time
 
 import pytest
@@ -175,6 +176,10 @@ def operator_session(dash, page) -> None:
     coeff = page.locator("#coefficients [data-model='dynamic'] tr[data-channel='x'][data-term='B0'] td.num")
     assert coeff.count() == 1 and abs(float(coeff.text_content())) < 1e4
     assert f"#{second}" in page.text_content("#coefficients [data-model='dynamic']")
+    # the ranges the fit is valid for, in words and units (not the stored keys temp:temp_t1, rate:temp_t1)
+    valid = page.text_content("#coefficients [data-model='dynamic'] p.validity")
+    assert re.search(r"temp_t1 -?[\d.]+ to -?[\d.]+ °C", valid) and "dT/dt of temp_t1" in valid, valid
+    assert "temp:" not in valid and "rate:" not in valid, valid
     shot(page, "06-gyro-coefficients")
 
     mark("coefficients shown", t_start)

@@ -93,6 +93,33 @@ def test_scripts_parse():
         assert r.returncode == 0, f"{path.name}: {r.stderr}"
 
 
+def test_plot_tick_labels_step_by_the_tick_step():
+    """Each axis label is its tick's value: with a 0.025 step (an x axis of about 0.3 h, zoomed) the
+    labels read 0.075, 0.100, 0.125 ..., never 0.08, 0.10, 0.13 (0.125 rounded to two decimals)."""
+    node = _node()
+    if node is None:
+        pytest.skip("no JavaScript engine: neither playwright's bundled node nor node on PATH")
+    script = """
+      const vm = require("vm"), fs = require("fs");
+      const lib = vm.runInNewContext(fs.readFileSync(process.argv[1], "utf8") + ";({niceTicks, tickLabel})", {});
+      const out = [[0.07, 0.33, 12], [0, 0.35, 10], [10, 30, 10], [-30, 50, 6], [0, 2500, 10]].map(([lo, hi, n]) => {
+        const t = lib.niceTicks(lo, hi, n);
+        return [t.step, t.ticks.map((v) => lib.tickLabel(v, t.step))];
+      });
+      console.log(JSON.stringify(out));"""
+    r = subprocess.run([node, "-e", script, str(STATIC / "plot.js")], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 0, r.stderr
+    import json
+
+    axes = json.loads(r.stdout)
+    assert axes[0] == [0.025, ["0.050", "0.075", "0.100", "0.125", "0.150", "0.175", "0.200", "0.225", "0.250",
+                               "0.275", "0.300", "0.325", "0.350"]]
+    for step, labels in axes:
+        values = [float(v) for v in labels]
+        assert all(abs((b - a) - step) < 1e-9 * max(1.0, step) for a, b in zip(values, values[1:])), (step, labels)
+    assert axes[2][1][:3] == ["10", "12", "14"] and axes[3][1][:2] == ["-40", "-20"]
+
+
 # ------------------------------------------------------------------------------ API calls of the pages
 _CALL = re.compile(r"\b(?:api|apiFetch|downloadWithToken|followEvents)\(\s*([`\"])(/[^`\"]*)\1")
 

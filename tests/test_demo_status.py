@@ -1,5 +1,6 @@
 """``bench demo`` follows its runs through the run list (status and progress of the run it queued, not
-another gyro's or another run's), and the runs it queues are valid thermal ramps.  No worker runs here."""
+another gyro's or another run's), and the runs it queues are valid thermal ramps; it prints coefficients
+with their units, and its ``--dir`` never deletes files an earlier demo did not write.  No worker runs here."""
 from __future__ import annotations
 
 import pytest
@@ -7,7 +8,10 @@ import typer
 from fastapi.testclient import TestClient
 
 from api.app import create_app
-from bench.commands.demo import GYRO_ID, TRAIN, VALIDATE, _run_summary
+from typer.testing import CliRunner
+
+from bench.cli import app
+from bench.commands.demo import DEMO_FILES, GYRO_ID, TRAIN, VALIDATE, _fresh_directory, _run_summary, coefficient_lines
 from bench.storage import open_database
 from tests.api_support import OPERATOR, TOKENS, register_bench
 
@@ -43,3 +47,32 @@ def test_a_run_missing_from_the_list_is_an_error(client, capsys):
     with pytest.raises(typer.Exit):
         _run_summary(client, 999)
     assert "run 999 is not in GET /runs?gyro_id=DEMO-RLG-001" in capsys.readouterr().err
+
+
+def test_coefficients_are_printed_with_their_units():
+    doc = {"gyro_id": GYRO_ID, "models": [{"model": "dynamic", "version": 1, "channels": {
+        "x": {"coefficients": {"B0": 0.16247, "k": 0.0020843, "q": 0.27231}, "probe": "t1",
+              "units": {"B0": "deg/h", "k": "deg/h/C", "q": "deg/h/(C/min)"}}}}]}
+    assert coefficient_lines(doc) == ["dynamic / x (probe t1): B0=0.1625 deg/h, k=0.002084 deg/h/C, q=0.2723 deg/h/(C/min)"]
+
+
+def test_dir_with_other_files_stops_the_demo_before_anything_is_deleted(tmp_path):
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "notes.txt").write_text("a week of bench notes")
+    (work / "close-loop.json").write_text("{}")
+    res = CliRunner().invoke(app, ["demo", "--dir", str(work)])
+    assert res.exit_code == 2
+    assert f"--dir {work}: holds files the demo did not write (notes.txt)" in res.stderr, res.stderr
+    assert sorted(p.name for p in work.iterdir()) == ["close-loop.json", "notes.txt"]     # nothing removed
+
+
+def test_an_earlier_demos_directory_is_emptied(tmp_path):
+    out = tmp_path / "demo"
+    out.mkdir()
+    for name in DEMO_FILES:
+        (out / name).write_text("old")
+    _fresh_directory(out)
+    assert out.is_dir() and not any(out.iterdir())
+    _fresh_directory(tmp_path / "new" / "demo")                  # a new directory is made, parents too
+    assert (tmp_path / "new" / "demo").is_dir()

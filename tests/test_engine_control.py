@@ -35,6 +35,8 @@ def test_stop_outside_a_record_stops_at_once():
     run = bench.run("s")
     assert steps_status(run) == {0: "done", 1: "stopped"}
     assert run.status_history[-1][0] - t0 < 260.0
+    # the run's last progress keeps the 200 s of its 600-s soak it did (of 1500 s planned), not 0 %
+    assert run.checkpoint["progress"]["percent"] == pytest.approx(100.0 * 200.0 / 1500.0, abs=0.5)
 
 
 def test_abort_goes_to_safe_state_now():

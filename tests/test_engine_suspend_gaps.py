@@ -1,11 +1,14 @@
 """Suspension gaps on the SQL store: frames that stop while the run is suspended are one gap row of
-kind ``suspension`` (not ``link``), counted; a gap outside any suspension keeps its own kind."""
+kind ``suspension`` (not ``link``), counted; a gap outside any suspension keeps its own kind.  And the
+store's checkpoints keep a run's percent and its elapsed bench time from one instant."""
 from __future__ import annotations
 
 import pytest
+from sqlalchemy import select
 
 from bench.engine.sqlstore import SqlRunStore, new_run
 from bench.storage import queries
+from bench.storage.models import Step
 from tests.test_engine_doubles import Bench, Scripted
 from tests.test_engine_suspend import RECORD
 
@@ -52,3 +55,24 @@ def test_a_reported_link_gap_while_suspended_is_the_same_one_row(db):
     (gap,) = _run(db, actions)
     assert gap.reason == "suspension"
     assert gap.frames_missing == pytest.approx(50 * RATE_HZ, abs=128)
+
+
+def test_the_last_checkpoint_leaves_the_final_elapsed_time_beside_the_final_percent(db):
+    """The run page reads the percent (``runs.progress``) and the elapsed / remaining bench time
+    (``live["progress"]``) of one run: each checkpoint writes both, so a run that ended between two of
+    the worker's publishes (here: no worker publishes at all) still shows its whole elapsed time."""
+    bench = Bench(settle_s=30.0)
+    rid = new_run(db, procedure="suspend-gaps", parameters={}, config_snapshot={}, gyro_id="G-S", bench_name="doubles")
+    bench.store = SqlRunStore(db, geometry=bench.config.turntable.geometry, nominal_rate_hz=RATE_HZ)
+    try:
+        assert bench.engine(Scripted(bench.clock, [])).run(str(rid), RECORD) == "completed"
+    finally:
+        bench.store.close(rid)
+    with db.session() as s:
+        run = queries.get_run(s, rid)
+        steps = s.scalars(select(Step).where(Step.run_id == rid)).all()
+        progress, percent = (run.live or {}).get("progress") or {}, 100.0 * run.progress
+    assert percent == pytest.approx(100.0) and progress.get("percent") == pytest.approx(percent), progress
+    assert progress["remaining_bench_s"] == 0.0
+    span = max(st.finished_t for st in steps) - min(st.started_t for st in steps)
+    assert span > 100.0 and progress["elapsed_bench_s"] >= span, (progress, span)

@@ -68,3 +68,23 @@ def test_residual_plots_use_the_rate_each_model_fitted():
     del old["rate_method"], old["rate_window_s"]
     linear.definition = old
     assert _rate_regressor(linear) == ("centred_slope", 300.0)
+
+
+def test_validity_reads_as_ranges_with_units_not_as_a_python_dict():
+    """The fit report's validity table: one row per fitted input range, with its unit, and the hull as a
+    vertex count (it printed {'temp:temp_t1': [-26.5625, 51.25], ...} and ['temp:temp_t1', 'rate:temp_t1'])."""
+    from bench.fit.models import fit_model
+
+    train = startup_runs(24, rho_100s=0.5, sd=0.005, starts=(-20, 20))
+    results = [fit_model("static", train, "x"), fit_model("t1 + dt1", train, "x"),
+               fit_fog_delaunay(train, "x", probe="t1")]
+    page = render_fit_report(results, train)
+    tables = re.findall(r'<table class="validity">.*?</table>', page, flags=re.S)
+    assert len(tables) == 3
+    for table in tables:
+        cells = re.findall(r"<td>(.*?)</td>", table)
+        assert cells and not any(c.startswith(("{", "[")) or "&#x27;" in c for c in cells), cells
+    t1 = train["temp_t1"]
+    assert f"<td>range of temp_t1</td><td>{t1.min():.4g} .. {t1.max():.4g} C</td>" in tables[0], tables[0]
+    assert re.search(r"<td>range of dT/dt of temp_t1</td><td>-?[\d.]+ \.\. -?[\d.]+ C/min</td>", tables[1]), tables[1]
+    assert re.search(r"<td>hull</td><td>polygon of \d+ vertices", page)

@@ -124,3 +124,20 @@ def test_fit_versions_count_per_gyro_and_model_and_one_is_accepted(db, run_id):
         accepted = queries.list_fits(s, "GYRO-FIT", model="static", accepted_only=True)
         assert [(f.version, f.coefficients["c0"]) for f in accepted] == [(2, 1.5), (2, 2.5)]
         assert s.query(Fit).filter_by(gyro_id="GYRO-FIT").count() == 5
+
+
+def test_sampling_summary_reuses_a_recent_summary_only_once_the_run_has_readings(db, run_id):
+    """The run page polls the sampling summary, computed at most every ``max_age_s``: a run that has just
+    started must not keep showing 0 readings for that long while its data come in."""
+    from bench.storage.models import Telemetry
+    from bench.storage.sampling import sampling_summary
+
+    assert sampling_summary(db, run_id, max_age_s=60.0)["chamber"]["readings"] == 0
+    with db.session() as s:
+        s.add_all([Telemetry(run_id=run_id, t=t, device="chamber", chamber_pv=30.0) for t in (0.0, 5.0)])
+    first = sampling_summary(db, run_id, max_age_s=60.0)
+    assert first["chamber"] == {"readings": 2, "median_interval_s": 5.0, "max_interval_s": 5.0}
+    with db.session() as s:
+        s.add(Telemetry(run_id=run_id, t=10.0, device="chamber", chamber_pv=30.0))
+    assert sampling_summary(db, run_id, max_age_s=60.0)["chamber"]["readings"] == 2     # recent enough: reused
+    assert sampling_summary(db, run_id)["chamber"]["readings"] == 3                    # max_age_s 0: counted

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import secrets
-import shutil
 import socket
 import threading
 import time
@@ -70,9 +69,7 @@ def demo_command(
     from bench.worker import Worker
 
     out = Path(directory)
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
+    _fresh_directory(out)
     db_url = f"sqlite:///{(out / 'bench.sqlite').resolve()}"
     db = open_database(db_url)
     token = secrets.token_urlsafe(16)
@@ -112,10 +109,8 @@ def demo_command(
         # records (thermal_ramp's own Fit step stores a newer version when that run completes)
         coeff = _ok(http.get(f"/gyros/{GYRO_ID}/coefficients", params={"model": "dynamic"}))
         typer.echo(f"\nGET {base}/gyros/{GYRO_ID}/coefficients?model=dynamic  (fitted on run {train_id})")
-        for model in coeff.get("models", [coeff]):
-            for ch, entry in (model.get("channels") or {}).items():
-                terms = ", ".join(f"{k}={v:.4g}" for k, v in entry["coefficients"].items())
-                typer.echo(f"  {model.get('model', 'dynamic')} / {ch} (probe {entry.get('probe')}): {terms}")
+        for line in coefficient_lines(coeff):
+            typer.echo(f"  {line}")
 
         val_id = _run(http, "thermal_ramp", VALIDATE, "held-out run: +40 -> -20 C at 0.5 C/min", deadline)
 
@@ -155,6 +150,40 @@ def demo_command(
         thread.join(timeout=10)
         sim.stop()
         db.dispose()
+
+
+# what a demo directory holds (the SQLite file with its journal, the analysis' JSON and HTML): the only
+# files ``bench demo`` removes when it starts again in the same directory
+DEMO_FILES = ("bench.sqlite", "bench.sqlite-journal", "bench.sqlite-wal", "bench.sqlite-shm", "close-loop.json",
+              "close-loop.html")
+
+
+def _fresh_directory(out: Path) -> None:
+    """Make ``out`` an empty demo directory: the files of an earlier demo there are removed; anything else
+    (``--dir`` naming a directory that holds other work) stops the demo before it deletes a thing."""
+    if out.exists() and not out.is_dir():
+        fail(f"--dir {out}: exists and is not a directory")
+    if out.exists():
+        others = sorted(p.name for p in out.iterdir() if p.name not in DEMO_FILES or not p.is_file())
+        if others:
+            shown = ", ".join(others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
+            fail(f"--dir {out}: holds files the demo did not write ({shown}); give an empty or new directory")
+        for name in DEMO_FILES:
+            (out / name).unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def coefficient_lines(doc: dict) -> list[str]:
+    """``GET /gyros/{id}/coefficients`` as one line per model and channel, each coefficient with four
+    significant digits and its unit (``B0=0.1625 deg/h, k=0.002084 deg/h/C``)."""
+    lines = []
+    for model in doc.get("models", [doc]):
+        for ch, entry in (model.get("channels") or {}).items():
+            units = entry.get("units") or {}
+            terms = ", ".join(f"{k}={v:.4g}" + (f" {units[k]}" if units.get(k) else "")
+                              for k, v in entry["coefficients"].items())
+            lines.append(f"{model.get('model', 'dynamic')} / {ch} (probe {entry.get('probe')}): {terms}")
+    return lines
 
 
 def _ok(resp):

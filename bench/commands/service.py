@@ -138,7 +138,7 @@ def serve_command(
     bench_name: str = typer.Option("sim1", "--bench-name", help="name of the simulated bench"),
     sim_gyros: Optional[int] = typer.Option(None, "--sim-gyros", min=1, max=64, help="simulated bench: this many "
                                             "gyros in one chamber (runs then name them with gyro_ids)"),
-    log_level: str = typer.Option("info", "--log-level"),
+    log_level: str = typer.Option("info", "--log-level", help="debug, info, warning or error"),
     log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
                                              "default $BENCH_LOG_FORMAT or text"),
     db_url: Optional[str] = db_option(),
@@ -230,7 +230,7 @@ def worker_command(
     stale_after_s: float = typer.Option(15.0, "--stale-after", min=0.2, help="a heartbeat older than this means "
                                         "the worker died (wall seconds)"),
     poll_s: float = typer.Option(0.5, "--poll", min=0.01, help="queue polling period, wall seconds"),
-    log_level: str = typer.Option("info", "--log-level"),
+    log_level: str = typer.Option("info", "--log-level", help="debug, info, warning or error"),
     log_format: Optional[str] = typer.Option(None, "--log-format", help="text or json (JSON lines); "
                                              "default $BENCH_LOG_FORMAT or text"),
     metrics_port: Optional[int] = typer.Option(None, "--metrics-port", min=0, max=65535,
@@ -369,7 +369,7 @@ def import_command(
     file: str = typer.Argument(..., help="measured-data CSV (v1)"),
     gyro: str = typer.Option(..., "--gyro", help="gyro ID the data belongs to"),
     bench_name: Optional[str] = typer.Option(None, "--bench", help="bench the data was measured on"),
-    operator: str = typer.Option("", "--operator"),
+    operator: str = typer.Option("", "--operator", help="who measured the data (stored with the run)"),
     db_url: Optional[str] = db_option(),
 ) -> None:
     """Store a measured-data CSV as a completed run (then fit it with ``bench fit MODEL RUN_ID``)."""

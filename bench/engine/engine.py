@@ -97,6 +97,7 @@ class Engine:
         self.fixture: FixtureAcquisition | None = None       # several gyros in one chamber
         self.current: StepExecutor | None = None
         self.current_index = 0
+        self.ended_in_step_s = 0.0     # the part of its estimate a step ended early (stop, abort) had done
         self.powered_since: float | None = None
         self.paused = False
         self.stop_requested = False
@@ -185,6 +186,8 @@ class Engine:
             done += max(0.0, self.estimates[index] - current_remaining)
         else:
             current_remaining = 0.0
+            if index < len(self.estimates):
+                done += self.ended_in_step_s
         remaining = current_remaining + remaining_later
         return {
             "step_index": index,
@@ -453,6 +456,10 @@ class Engine:
         now = self.clock.now()
         ex = self.current
         if ex is not None:
+            # the run's last progress keeps what the interrupted step had done (a run stopped in its soak
+            # at 16 % stays at 16 %, not the 0 % of the steps before it)
+            if self.current_index < len(self.estimates):
+                self.ended_in_step_s = max(0.0, self.estimates[self.current_index] - ex.remaining_s())
             ex.finish(now, complete=False)
             self.store.set_step_status(self.run_id, ex.index, ex.step.kind, StepOutcome.ending_run(status),
                                        now, {"reason": reason})

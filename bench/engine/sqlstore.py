@@ -26,7 +26,8 @@ one the table angles realise (``bench.devices.orientation.code_at`` with the ben
 run recorded "as mounted" (``thermal_ramp`` default) still says where its axes pointed.
 
 Checkpoint progress: the engine's ``progress.percent`` is stored as ``runs.progress`` (0..1) and
-``runs.current_step``; ``live["progress"]`` keeps the engine's whole progress document.
+``runs.current_step``; ``live["progress"]`` keeps the engine's whole progress document (each checkpoint
+writes both from its instant; between checkpoints the worker's publish refreshes them).
 """
 from __future__ import annotations
 
@@ -224,9 +225,13 @@ class SqlRunStore:
         progress = checkpoint.get("progress") or {}
         percent = progress.get("percent")
         with self.db.session() as s:
-            self._owned(s, rid)
+            run = self._owned(s, rid)
             queries.save_checkpoint(s, rid, jsonable(checkpoint), current_step=int(checkpoint.get("step_index", 0)),
                                     progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)))
+            if progress:
+                # the run's percent above and its elapsed / remaining bench time in live["progress"] come
+                # from one instant: the checkpoint's (the run's last one is taken as it ends)
+                run.live = jsonable({**(run.live or {}), "progress": progress})
 
     def load_checkpoint(self, run_id: str) -> dict[str, Any] | None:
         with self.db.session() as s:

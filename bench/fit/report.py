@@ -174,6 +174,44 @@ def html_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], caption: s
     return "\n".join(out)
 
 
+def _signal_label(key: str) -> tuple[str, str]:
+    """A validity signal key (``temp:temp_t1``, ``rate:temp_t1``, ``column:humidity``) as words and unit."""
+    op, _, column = key.partition(":")
+    if op == "temp":
+        return column, "C"
+    if op == "rate":
+        return f"dT/dt of {column}", "C/min"
+    return column or key, ""
+
+
+def _span(lo: float, hi: float, unit: str) -> str:
+    return f"{float(lo):.4g} .. {float(hi):.4g}" + (f" {unit}" if unit else "")
+
+
+def validity_rows(validity: dict[str, Any]) -> list[tuple[str, str]]:
+    """A fit's validity as rows people read: one per signal range (``temp_t1`` | ``-26.56 .. 51.25 C``),
+    the (T, dT/dt) hull as its vertex count and inputs, the rest as values (never a dict or list)."""
+    rows: list[tuple[str, str]] = []
+    for key, (lo, hi) in (validity.get("signals") or {}).items():
+        label, unit = _signal_label(key)
+        rows.append((f"range of {label}", _span(lo, hi, unit)))
+    if validity.get("hull"):
+        inputs = " and ".join(_signal_label(k)[0] for k in validity.get("hull_signals") or ())
+        rows.append(("hull", f"polygon of {len(validity['hull'])} vertices" + (f" in {inputs}" if inputs else "")))
+    for key, value in validity.items():
+        if key in ("signals", "hull", "hull_signals"):
+            continue
+        if key in ("tmin_c", "tmax_c") and isinstance(value, (int, float)):
+            rows.append((key, f"{float(value):.4g} C"))
+        elif isinstance(value, dict):
+            rows.extend((f"{key}: {k}", _fmt(v)) for k, v in value.items())
+        elif isinstance(value, (list, tuple)):
+            rows.append((key, ", ".join(_fmt(v) for v in value) if len(value) <= 8 else f"{len(value)} values"))
+        else:
+            rows.append((key, _fmt(value)))
+    return rows
+
+
 def coefficient_table(result: FitResult) -> str:
     rows = [(name, value, result.units.get(name, "")) for name, value in result.coefficients.items()]
     return html_table(("term", "value", "unit"), rows, caption=f"{result.model} / {result.channel}: coefficients",
@@ -319,7 +357,7 @@ def render_fit_report(results: Sequence[FitResult], train: Dataset, validation: 
         body.append(html_table(("statistic", "value"), [(k, v) for k, v in r.stats.items()
                                                         if not isinstance(v, (dict, np.ndarray))],
                                caption="fit statistics", css_class="stats"))
-        body.append(html_table(("validity", "value"), [(k, v) for k, v in r.validity.items()],
+        body.append(html_table(("validity", "value"), validity_rows(r.validity),
                                caption="validity", css_class="validity"))
 
     metric_rows: list[list[Any]] = []

@@ -17,7 +17,15 @@ function coefficientTable(channels) {
   return el("table.coefficients", el("thead", el("tr", ["Channel", "Term", "Value", "Unit"].map((h) => el("th", h)))), el("tbody", rows));
 }
 
-/* "t1 25 to 26.1 °C-ish ranges": the signal ranges the fit is valid for (channels with the same ranges merged). */
+/* A fit's signal key as words and unit: "temp:temp_t1" -> temp_t1 (°C), "rate:temp_t1" -> dT/dt of temp_t1 (°C/min). */
+function signalLabel(key) {
+  const [op, column] = key.includes(":") ? key.split(/:(.*)/s) : ["", key];
+  if (op === "temp") return [column, "°C"];
+  if (op === "rate") return [`dT/dt of ${column}`, "°C/min"];
+  return [column || key, ""];
+}
+
+/* "temp_t1 25 to 26.1 °C, ...": the signal ranges the fit is valid for (channels with the same ranges merged). */
 function validityText(channels) {
   const byText = new Map();
   for (const [channel, entry] of Object.entries(channels || {})) {
@@ -25,8 +33,11 @@ function validityText(channels) {
     if (!v) continue;
     let text;
     if (v.signals && typeof v.signals === "object") {
-      text = Object.entries(v.signals).map(([name, range]) => (Array.isArray(range) && range.length === 2
-        ? `${name} ${fmtNum(range[0])} to ${fmtNum(range[1])}` : `${name} ${fmtValue(range)}`)).join(", ");
+      text = Object.entries(v.signals).map(([key, range]) => {
+        const [name, unit] = signalLabel(key);
+        return Array.isArray(range) && range.length === 2
+          ? `${name} ${fmtNum(range[0])} to ${fmtNum(range[1])}${unit ? ` ${unit}` : ""}` : `${name} ${fmtValue(range)}`;
+      }).join(", ");
       if (v.outside) text += ` (outside: ${v.outside})`;
     } else {
       text = fmtValue(v);
@@ -44,7 +55,7 @@ function renderCoefficients(doc) {
       ...(m.run_ids || []).flatMap((r, i) => [i ? ", " : "", el("a", { href: `/ui/runs/${r}` }, `#${r}`)]),
       " · ", el("a", { href: `/ui/fits/${m.fit_id}` }, "details and report")),
     coefficientTable(m.channels),
-    el("p.muted", validityText(m.channels)))));
+    el("p.muted.validity", validityText(m.channels)))));
 }
 
 function accept(id) {

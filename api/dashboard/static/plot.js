@@ -39,7 +39,10 @@ function niceTicks(lo, hi, maxTicks) {
 }
 
 function tickLabel(v, step) {
-  const decimals = Math.max(0, Math.min(6, -Math.floor(Math.log10(step) + 1e-9)));
+  // as many decimals as the step has (0.025 needs three: 0.125 is not "0.13"), so neighbouring
+  // labels differ by exactly the step
+  let decimals = 0;
+  while (decimals < 6 && Math.abs(step * 10 ** decimals - Math.round(step * 10 ** decimals)) > 1e-6 * step * 10 ** decimals) decimals += 1;
   if (Math.abs(v) >= 1e5 || (Math.abs(v) > 0 && Math.abs(v) < 1e-4)) return v.toExponential(2);
   return v.toFixed(decimals);
 }
@@ -301,7 +304,9 @@ class LinePlot {
     ctx.lineTo(x, pad.top + h);
     ctx.stroke();
     ctx.setLineDash([]);
-    const lines = [`${this.options.xLabel.replace(/\s*\(.*\)$/, "") || "x"}: ${fmtPlotNum(xv)}`];
+    // the x value with the axis' unit: "bench time ... (h)" reads "bench time ...: 0.1672 h"
+    const xUnit = (this.options.xLabel.match(/\(([^()]*)\)$/) || [])[1];
+    const lines = [`${this.options.xLabel.replace(/\s*\(.*\)$/, "") || "x"}: ${fmtPlotNum(xv)}${xUnit ? ` ${xUnit}` : ""}`];
     for (const s of this.series) {
       const v = s.values[i];
       if (v === null || v === undefined || !Number.isFinite(v)) continue;

@@ -169,7 +169,11 @@ function totalText(run) {
 function renderLatest(latest) {
   const rows = [];
   if (latest.chamber) {
-    rows.push(["Chamber air", `${fmtNum(latest.chamber.pv_c)} °C (set point ${fmtNum(latest.chamber.setpoint_c)} °C, ramp ${fmtNum(latest.chamber.ramp_setpoint_c)} °C)`]);
+    // the set point the controller works to, as the chamber plot draws it: the ramping one while a ramp
+    // runs (the set-point register keeps the ramp's start until it ends), else the register
+    const ramping = Number.isFinite(latest.chamber.ramp_setpoint_c);
+    const sp = ramping ? latest.chamber.ramp_setpoint_c : latest.chamber.setpoint_c;
+    rows.push(["Chamber air", `${fmtNum(latest.chamber.pv_c)} °C (set point ${fmtNum(sp)} °C${ramping ? ", ramping" : ""})`]);
     if (latest.chamber.alarm) rows.push(["Chamber alarm", String(latest.chamber.alarm)]);
   }
   if (latest.probes) {
@@ -296,10 +300,13 @@ function drawPlots() {
   const s = state.series;
   const pick = (prefix) => Object.keys(s.cols).filter((n) => n.startsWith(prefix)).sort();
   // the controller's working set point moves along a ramp while the set-point register does not follow
-  // it: plot the ramping one when the chamber reports it
-  const ramp = (s.cols.chamber_ramp_sp || []).some((v) => v !== null && Number.isFinite(v));
+  // it: plot the ramping one while the chamber reports it, the register before and after the ramp (one
+  // continuous trace through soak, ramp and hold)
+  const rampSp = s.cols.chamber_ramp_sp || [];
+  const ramp = rampSp.some((v) => v !== null && Number.isFinite(v));
+  const working = (s.cols.chamber_sp || []).map((v, i) => (Number.isFinite(rampSp[i]) ? rampSp[i] : v));
   state.plots.chamber.setData(s.t, [
-    ramp ? { name: "set point (ramping)", values: s.cols.chamber_ramp_sp, color: "#1f77b4", dash: [5, 4] }
+    ramp ? { name: "set point (ramping)", values: working, color: "#1f77b4", dash: [5, 4] }
       : { name: "set point", values: s.cols.chamber_sp || [], color: "#7f7f7f", dash: [5, 4] },
     { name: "chamber air", values: s.cols.chamber_pv || [], color: "#d62728" },
   ]);
