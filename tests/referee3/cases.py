@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tests.referee3 import physics as ph
-from tests.referee3.effects import Effect, LIBRARY_KINDS, column, rate_c_per_min
+from tests.referee3.effects import Effect, LIBRARY_KINDS, column
 
 CHANNELS = ("x", "y")
 LATITUDE_DEG = 48.1

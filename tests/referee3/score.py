@@ -37,8 +37,8 @@ PRODUCT_KINDS = {
     "rate": {"rate"},
     "rate_squared": {"rate_squared"},
     "temp_rate": {"temp_rate_cross"},
-    "relay": {"hysteresis"},
-    "play": {"duhem_hysteresis"},
+    "relay": {"hysteresis"},    # params.form "reversal"
+    "play": {"hysteresis"},     # params.form "gradual"
     "warmup": {"warmup"},
     "time_drift": {"time_drift"},
 }
@@ -144,8 +144,13 @@ def _probes_of(params: dict) -> set[str]:
     return out
 
 
+HYSTERESIS_FORMS = {"relay": "reversal", "play": "gradual"}
+
+
 def _matches(e: Effect, added: dict) -> bool:
     if added.get("kind") not in PRODUCT_KINDS.get(e.kind, set()):
+        return False
+    if e.kind in HYSTERESIS_FORMS and (added.get("params") or {}).get("form") != HYSTERESIS_FORMS[e.kind]:
         return False
     return _probes_of(added.get("params") or {}) == set(e.probes)
 
@@ -230,8 +235,17 @@ def judge_channel(case: Case, ch: str, rep: dict) -> ChannelScore:
         extra = [(a, n) for a, n in zip(added, names) if not any(_matches(e, a) for e in truth.effects)]
         kept = [e for e in truth.effects if e not in unmatched]
         alike = [e for e in unmatched if extra and look_alike(case, ch, e, kept, [a for a, _ in extra], floor)]
+        # an extra term on the probe of a matched effect that, with it, reproduces that effect (a
+        # temp*rate cross about another reference temperature needs a rate term beside it)
+        reexpressed = (not unmatched and extra
+                        and all(_probes_of(a.get("params") or {}) <= {p for e in kept for p in e.probes}
+                                for a, _ in extra)
+                        and all(look_alike(case, ch, e, [k for k in kept if k is not e], added, floor)
+                                for e in kept))
         if alike and len(alike) == len(unmatched):
             notes.append(f"look-alike: {[n for _, n in extra]} for {[e.describe() for e in alike]}")
+        elif reexpressed:
+            notes.append(f"re-expression: {[n for _, n in extra]} beside the matched effects")
         elif unmatched or extra:
             amb = any(_matches(e, c) for e in unmatched for a in added for c in (a.get("ambiguous_with") or []))
             fails.append(f"kinds: missed {[e.describe() for e in unmatched]}, added {[n for _, n in extra]}"
