@@ -1,0 +1,1 @@
+"""Third close-the-loop referee: an independent generator family and its scorer."""

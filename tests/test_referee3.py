@@ -1,0 +1,54 @@
+"""A few cases of the third close-the-loop referee (tests/referee3), run through the CLI.
+
+Each case is one gyro unit with two channels, a TRAIN and a VALIDATE run from the referee's own
+physics; a case passes when every channel has the right kinds and probes (or a look-alike within
+half a noise floor), an honest verdict, and a validation error within 1.15x the oracle's, never
+worse than before.  Known misses carry the reason measured when they were added (strict=False: a
+better analysis may pass them).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.referee3 import physics as ph
+from tests.referee3.cases import build_case
+from tests.referee3.score import score_case
+
+KNOWN_MISSES: dict[tuple[str, int], str] = {
+    ("relay_hysteresis", 1): "right kind and probe (reversal hysteresis on t2), explained, but validation "
+                             "std100 0.0395 = 1.21x the oracle 0.0327 (all five seeds 1.21-1.34x)",
+    ("gradual_hysteresis", 2): "right kind and probe (gradual hysteresis on t2), partly_explained, "
+                               "validation std100 0.0554 = 1.68x the oracle 0.0329",
+}
+
+CASES = [("complete_colder", 1), ("lag", 1), ("unrecorded_humidity", 1), ("relay_hysteresis", 1),
+         ("gradual_hysteresis", 2)]
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("cls,seed", [
+    pytest.param(c, s, marks=pytest.mark.xfail(reason=KNOWN_MISSES[(c, s)], strict=False))
+    if (c, s) in KNOWN_MISSES else (c, s) for c, s in CASES])
+def test_referee3_case(cls, seed):
+    r = score_case(cls, seed)
+    assert r.error is None, r.error
+    assert r.passed, [(c.channel, c.failures) for c in r.channels]
+
+
+def test_flicker_allan_floor_is_0664_b():
+    """The generator's bias instability has the IEEE 952 Allan floor 0.664 B (within 15 %)."""
+    rng = np.random.default_rng(3)
+    b = 0.02
+    x = ph.flicker(60000, b, rng)
+    adev = np.mean([ph.allan_dev(x, m) for m in (30, 100, 300)])
+    assert abs(adev / (0.664 * b) - 1) < 0.15, adev
+
+
+def test_cases_are_seeded_and_quantised():
+    a, b = build_case("rate", 3), build_case("rate", 3)
+    for k, v in a.train.columns.items():
+        np.testing.assert_array_equal(v, b.train.columns[k])
+    steps = a.train.columns["temp_t1"] / ph.DS18B20_STEP_C
+    np.testing.assert_array_equal(steps, np.round(steps))
+    assert a.validate.columns["time_s"][-1] < a.train.columns["time_s"][-1]   # validation is shorter
