@@ -8,6 +8,8 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from bench.commands.demo import GYRO_ID, TRAIN, VALIDATE, _run_summary
+from bench.engine import Fit
+from procedures import thermal_ramp
 from bench.storage import open_database
 from tests.api_support import OPERATOR, TOKENS, register_bench
 
@@ -43,3 +45,14 @@ def test_a_run_missing_from_the_list_is_an_error(client, capsys):
     with pytest.raises(typer.Exit):
         _run_summary(client, 999)
     assert "run 999 is not in GET /runs?gyro_id=DEMO-RLG-001" in capsys.readouterr().err
+
+
+def test_only_the_modelling_run_fits():
+    """The held-out run records without a Fit step, so the coefficients served by gyro ID after the demo
+    are those of the modelling run (a fit of the held-out run would store a newer accepted version)."""
+    def fits(params: dict) -> list[Fit]:
+        return [s for s in thermal_ramp.build(thermal_ramp.Params(**params)).steps if isinstance(s, Fit)]
+
+    assert [f.models for f in fits(TRAIN)] == [TRAIN["fit_models"]]
+    assert fits(VALIDATE) == []
+    assert len(fits({})) == 1                         # the procedure's default still fits
