@@ -34,6 +34,9 @@ class ChamberConfig(_Strict):
     max_ramp_c_per_min: float = Field(5.0, gt=0)
     setpoint_min_c: float = -70.0
     setpoint_max_c: float = 180.0
+    # bench seconds: the registers only this host (or the operator at the front panel) changes in constant
+    # mode, 200 mode and 2000 event 1, are read again at least this often (and after every write)
+    status_refresh_s: float = Field(60.0, ge=0)
 
 
 class TurntableGeometry(_Strict):

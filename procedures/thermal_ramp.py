@@ -5,7 +5,8 @@ for several hours; 10 min after the system is powered the chamber goes from +40 
 -1 C/min, then holds 20 min; the gyro outputs and temperature sensors are recorded throughout."
 
 Recorded phases: ``warmup`` (the 10 min after power-on), ``ramp`` and ``cold_hold``; the dynamic
-model (temperature, gradient and rate terms) is fitted at the end.  ``soak_h`` default 4 h stands
+model (temperature, gradient and rate terms) is fitted at the end (unless ``fit=false``: a held-out run
+that only records, so the gyro's coefficients stay those of its modelling run).  ``soak_h`` default 4 h stands
 for the paper's "several hours".
 
 Orientation: S000 mounts the system 北天东 (NUE: x North, y Up, z East) for this test.  NUE keeps the
@@ -25,7 +26,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from bench.engine import Fit, GyroPower, Orient, Plan, Ramp, SetChamber, Soak
-from procedures.common import Celsius, Hours, Minutes, ModelList, RampRate, _Params
+from procedures.common import Celsius, Flag, Hours, Minutes, ModelList, RampRate, _Params
 
 NAME = "thermal_ramp"
 DESCRIPTION = ("S000 3.3 dynamic test, gyro as mounted (S000 mounts it NUE): soak +40 C, power on, 10 min, "
@@ -41,6 +42,9 @@ class Params(_Params):
     end_c: Celsius = -30.0
     final_hold_min: Minutes = 20.0
     fit_models: ModelList = Field(default_factory=lambda: ["dynamic"])
+    # False: record only, no Fit step (a held-out run for close-the-loop: the gyro's accepted coefficients
+    # stay those fitted on the modelling run)
+    fit: Flag = True
 
 
 def build(params: Params | None = None) -> Plan:
@@ -55,6 +59,7 @@ def build(params: Params | None = None) -> Plan:
         Ramp(target_c=p.end_c, rate_c_per_min=p.rate_c_per_min, record={**rec, "phase": "ramp"}),
         Soak(duration_s=p.final_hold_min * 60.0, record={**rec, "phase": "cold_hold"}),
         GyroPower(on=False),
-        Fit(models=p.fit_models, options={"procedure": NAME}),
     ]
+    if p.fit:
+        steps.append(Fit(models=p.fit_models, options={"procedure": NAME}))
     return Plan(name=NAME, steps=steps, params=p.model_dump(mode="json"))

@@ -152,6 +152,46 @@ def test_power_alarm_and_input_error(transport, clock):
         sim.stop()
 
 
+def test_status_reads_mode_and_event_1_when_due(sim, clock):
+    """Constant mode: every status reads PV and set point; mode and event 1 again only after a write of
+    ours, every ``status_refresh_s`` (a front-panel change shows within it) and at every call while a
+    profile runs (it ends by itself)."""
+    chamber = make_driver(sim, "tcp", clock, status_refresh_s=60.0)
+
+    def registers_read(call):
+        before = len(sim.received.entries())
+        result = call()
+        return result, [e.request for e in sim.received.entries()[before:]]
+
+    try:
+        chamber.read_setpoint()                         # connected (model, decimals, units read)
+        status, regs = registers_read(chamber.status)
+        assert regs == ["fc3 @100", "fc3 @200", "fc3 @300", "fc3 @2000"] and status.power_on
+        clock.advance(5)
+        status, regs = registers_read(chamber.status)
+        assert regs == ["fc3 @100", "fc3 @300"] and (status.mode, status.power_on) == (0, True)
+        sim.model.set_power(False)                      # the operator, not this driver
+        clock.advance(50)
+        assert registers_read(chamber.status)[0].power_on          # not due yet: the last value read
+        clock.advance(10)
+        status, regs = registers_read(chamber.status)
+        assert regs == ["fc3 @100", "fc3 @200", "fc3 @300", "fc3 @2000"] and not status.power_on
+        chamber.set_power(True)                         # a write of ours: read again at once
+        status, regs = registers_read(chamber.status)
+        assert "fc3 @2000" in regs and status.power_on
+        chamber.ramp_to(26.0, 1.0)                      # a profile of a minute or two
+        for _ in range(60):
+            clock.advance(5)
+            status, regs = registers_read(chamber.status)
+            if status.mode == 0:
+                break
+            assert regs == ["fc3 @100", "fc3 @200", "fc3 @300", "fc3 @2000", "fc3 @4122"]
+        assert status.mode == 0 and status.setpoint_c == pytest.approx(26.0)   # the end seen at once
+        assert registers_read(chamber.status)[1] == ["fc3 @100", "fc3 @300"]
+    finally:
+        chamber.close()
+
+
 def test_modbus_exceptions_are_typed(chamber, sim):
     chamber.read_temperature()                                          # connected
     sim.faults.modbus_exception(code=2)

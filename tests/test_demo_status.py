@@ -12,6 +12,8 @@ from typer.testing import CliRunner
 
 from bench.cli import app
 from bench.commands.demo import DEMO_FILES, GYRO_ID, TRAIN, VALIDATE, _fresh_directory, _run_summary, coefficient_lines
+from bench.engine import Fit
+from procedures import thermal_ramp
 from bench.storage import open_database
 from tests.api_support import OPERATOR, TOKENS, register_bench
 
@@ -76,3 +78,14 @@ def test_an_earlier_demos_directory_is_emptied(tmp_path):
     assert out.is_dir() and not any(out.iterdir())
     _fresh_directory(tmp_path / "new" / "demo")                  # a new directory is made, parents too
     assert (tmp_path / "new" / "demo").is_dir()
+
+
+def test_only_the_modelling_run_fits():
+    """The held-out run records without a Fit step, so the coefficients served by gyro ID after the demo
+    are those of the modelling run (a fit of the held-out run would store a newer accepted version)."""
+    def fits(params: dict) -> list[Fit]:
+        return [s for s in thermal_ramp.build(thermal_ramp.Params(**params)).steps if isinstance(s, Fit)]
+
+    assert [f.models for f in fits(TRAIN)] == [TRAIN["fit_models"]]
+    assert fits(VALIDATE) == []
+    assert len(fits({})) == 1                         # the procedure's default still fits

@@ -66,6 +66,22 @@ def test_rate_mode_limits_and_off(rig):
     assert table.read(2).rate_dps == 0.0 and table.mode(2) == "off"
 
 
+def test_both_axes_in_one_chained_query(rig):
+    clock, model, sim, table = rig
+    table.interlock_close(1)
+    table.interlock_close(2)
+    table.move_to(1, 45.0)
+    table.rate(2, 12.5, wait=True)
+    clock.advance(1.0)
+    before = len(sim.received.entries())
+    both = table.read_axes([1, 2])
+    assert [e.request for e in sim.received.entries()[before:]] == [":Read:Position? 1;Rate? 1;Position? 2;Rate? 2"]
+    assert both == {1: table.read(1), 2: table.read(2)}
+    assert both[1].position_deg == pytest.approx(45.0, abs=0.01) and both[2].rate_dps == pytest.approx(12.5)
+    with pytest.raises(InvalidAxis):
+        table.read_axes([1, 3])
+
+
 def test_acceleration_and_position_rate_limit_slow_the_move(rig):
     clock, model, _, table = rig
     table.interlock_close(1)

@@ -35,8 +35,9 @@ WARMUP = {"tau_s": 400.0, "amplitude_dph": {"x": 0.3, "y": -0.25, "z": 0.25}}
 # after the 70 C swing from the modelling run's cold end, so at power-on it warms only by its own heat)
 TRAIN = {"start_c": 50.0, "soak_h": 2.0, "warmup_min": 30.0, "rate_c_per_min": 1.0, "end_c": -30.0,
          "final_hold_min": 120.0, "fit_models": ["dynamic", "static"]}
+# the held-out run only records (no Fit step): the coefficients served by gyro ID stay the modelling run's
 VALIDATE = {"start_c": 40.0, "soak_h": 4.0, "warmup_min": 30.0, "rate_c_per_min": 0.5, "end_c": -20.0,
-            "final_hold_min": 120.0, "fit_models": ["dynamic"]}
+            "final_hold_min": 120.0, "fit": False}
 
 
 def register(app: typer.Typer) -> None:
@@ -105,14 +106,17 @@ def demo_command(
                    f"database {db_url})")
         http = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {token}"}, timeout=30.0)
         train_id = _run(http, "thermal_ramp", TRAIN, "modelling run: +50 -> -30 C at 1 C/min", deadline)
-        # the coefficients served by gyro ID now are the modelling run's: fetched before the held-out run
-        # records (thermal_ramp's own Fit step stores a newer version when that run completes)
+        # the coefficients served by gyro ID are the modelling run's (the held-out run does not fit)
         coeff = _ok(http.get(f"/gyros/{GYRO_ID}/coefficients", params={"model": "dynamic"}))
         typer.echo(f"\nGET {base}/gyros/{GYRO_ID}/coefficients?model=dynamic  (fitted on run {train_id})")
         for line in coefficient_lines(coeff):
             typer.echo(f"  {line}")
 
         val_id = _run(http, "thermal_ramp", VALIDATE, "held-out run: +40 -> -20 C at 0.5 C/min", deadline)
+        after = _ok(http.get(f"/gyros/{GYRO_ID}/coefficients", params={"model": "dynamic"}))
+        if _versions(after) != _versions(coeff):
+            fail(f"the held-out run {val_id} changed the coefficients served for {GYRO_ID}: "
+                 f"{_versions(coeff)} -> {_versions(after)}")
 
         typer.echo("\nclose-the-loop: queued; fitting the declared model, searching the effect library on the "
                    "modelling run, confirming on the held-out run...")
@@ -184,6 +188,11 @@ def coefficient_lines(doc: dict) -> list[str]:
                               for k, v in entry["coefficients"].items())
             lines.append(f"{model.get('model', 'dynamic')} / {ch} (probe {entry.get('probe')}): {terms}")
     return lines
+
+
+def _versions(doc: dict) -> list[tuple]:
+    """(model, version, runs fitted on) of each model a coefficients document serves."""
+    return [(m.get("model"), m.get("version"), tuple(m.get("run_ids") or ())) for m in doc.get("models", [doc])]
 
 
 def _ok(resp):

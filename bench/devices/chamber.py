@@ -38,6 +38,14 @@ Ramp choice (``config.ramp_mode``)
     point (4122) and the profile is terminated (1217 = 1), so the chamber holds where it is instead
     of jumping back to an old static set point.
 
+Status (``status()``, polled every few seconds): every call reads 100..102 (PV, input error, alarm) and
+300 (set point); 200 (mode) and 2000 (event 1) only when the last values read are older than
+``config.status_refresh_s`` bench seconds, after any write of this driver (which may change them), after
+a reconnect, and at every call while a profile runs or is held (the controller ends the profile, sets
+300 and may switch events by itself then; 4122 is read too).  In constant mode the controller changes
+neither on its own, only this host or the operator at the front panel does, so the steady poll costs
+two transactions instead of four and a front-panel change shows within ``status_refresh_s``.
+
 Uncertain points: 200 = 0 or 1 is constant, 2 running, 3 held (Espec's mapping); 102 is only
 tested for 0 / non-zero; 4043 is taken as tenths of a degree per minute (Espec writes
 ``int(rate*10)``).  ``max_ramp_c_per_min`` from the config bounds requested rates.
@@ -90,6 +98,15 @@ _EXC_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data
               4: "slave device failure", 6: "slave device busy"}
 
 
+@dataclass(frozen=True)
+class _Steady:
+    """Mode (200) and event 1 (2000) as read at bench time ``t`` in constant mode (see ``status``)."""
+
+    mode: int
+    power: int
+    t: float
+
+
 @dataclass
 class _HostRamp:
     start_c: float
@@ -117,6 +134,7 @@ class WatlowF4Chamber:
         self._celsius = True
         self.model_number: int | None = None
         self._host_ramp: _HostRamp | None = None
+        self._steady: _Steady | None = None
         self._guard: Callable[[], None] | None = None
 
     # ---- transport ---------------------------------------------------------------------------
@@ -139,6 +157,7 @@ class WatlowF4Chamber:
     def _drop_connection(self) -> None:
         self._client.close()
         self._connected = False
+        self._steady = None
 
     def _connect(self) -> None:
         if self._connected:
@@ -208,11 +227,13 @@ class WatlowF4Chamber:
 
     def _write(self, reg: int, value: int, *, what: str) -> None:
         raw = value & 0xFFFF
+        self._steady = None                 # a write may change the mode or the events: read them again
         self._transact(f"write {what} = {value}", reg, lambda: self._client.write_register(
             reg, raw, device_id=self.unit))
 
     def _write_pair(self, reg: int, values: list[int], *, what: str) -> None:
         raws = [v & 0xFFFF for v in values]
+        self._steady = None
         self._transact(f"write {what} = {values}", reg, lambda: self._client.write_registers(
             reg, raws, device_id=self.unit))
 
@@ -388,15 +409,24 @@ class WatlowF4Chamber:
         self._op(lambda: self._write(REG_EVENT1, 1 if on else 0, what="event 1 (chamber power)"))
 
     def status(self) -> ChamberStatus:
+        """PV, set point, mode, alarm, input error, chamber power and ramping set point; 200 and 2000
+        are read again only when due (module docstring, "Status")."""
         def go() -> ChamberStatus:
             host_sp = self._host_tick_locked()
             pv, err, alarm = self._read(REG_PV, 3, what="PV, input error, alarm")
-            mode = self._read(REG_MODE, what="mode")[0]
+            now = self.clock.now()
+            known = self._steady
+            if known is not None and not known.t <= now < known.t + self.config.status_refresh_s:
+                known = None
+            mode = known.mode if known is not None else self._read(REG_MODE, what="mode")[0]
             sp = self._read(REG_SETPOINT, what="set point")[0]
-            power = self._read(REG_EVENT1, what="event 1 (chamber power)")[0]
+            power = known.power if known is not None else self._read(REG_EVENT1, what="event 1 (chamber power)")[0]
             ramp_sp: float | None = host_sp
             if mode in MODES_PROFILE:
                 ramp_sp = self._to_c(self._read(REG_RAMP_SP, what="ramping set point")[0])
+                self._steady = None
+            elif known is None:
+                self._steady = _Steady(mode, power, now)
             return ChamberStatus(pv_c=self._to_c(pv), setpoint_c=self._to_c(sp), ramp_setpoint_c=ramp_sp,
                                  mode=mode, alarm=alarm, input_error=err, power_on=power == 1)
         return self._op(go)

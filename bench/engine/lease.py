@@ -67,10 +67,14 @@ class RunLease:
     def check_row(self, run: Run) -> None:
         """Inside an owner write's transaction (the run row locked): raise ``LeaseLost`` unless the row
         names this worker."""
+        self.check_worker(run.worker)
+
+    def check_worker(self, worker: str | None) -> None:
+        """``check_row`` given the locked row's ``worker`` column only."""
         if self.lost_to is not None:
             raise self.fail()
-        if run.worker != self.owner:
-            self.lose(run.worker)
+        if worker != self.owner:
+            self.lose(worker)
             raise self.fail()
 
 

@@ -205,8 +205,13 @@ class Acquisition:
     def read_table(self, now: float) -> dict[int, AxisState] | None:
         table: dict[int, AxisState] | None = {}
         try:
-            for axis in (self.outer_axis, self.inner_axis):
-                table[axis] = self.devices.turntable.read(axis)
+            turntable = self.devices.turntable
+            both = getattr(turntable, "read_axes", None)        # one round trip where the driver offers it
+            if both is not None:
+                table = both((self.outer_axis, self.inner_axis))
+            else:
+                for axis in (self.outer_axis, self.inner_axis):
+                    table[axis] = turntable.read(axis)
         except DeviceError as exc:
             self._link("table", exc)
             table = None

@@ -120,6 +120,13 @@ class SqlRunStore:
             self.lease.check_row(run)
         return run
 
+    def _check_owned(self, s, rid: int) -> None:
+        """``_owned`` for a write that does not need the row object: the row locked, only its worker read
+        (a checkpoint every two bench minutes would otherwise decode the last checkpoint each time)."""
+        worker = queries.run_worker(s, rid, for_update=True)
+        if self.lease is not None:
+            self.lease.check_worker(worker)
+
     # ---- writers ----------------------------------------------------------------------------
     def writer(self, run_id: str | int) -> FrameWriter:
         rid = run_key(run_id)
@@ -224,14 +231,16 @@ class SqlRunStore:
         rid = run_key(run_id)
         progress = checkpoint.get("progress") or {}
         percent = progress.get("percent")
-        with self.db.session() as s:
-            run = self._owned(s, rid)
+        with self._live_lock, self.db.session() as s:
+            self._check_owned(s, rid)
             queries.save_checkpoint(s, rid, jsonable(checkpoint), current_step=int(checkpoint.get("step_index", 0)),
                                     progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)))
             if progress:
                 # the run's percent above and its elapsed / remaining bench time in live["progress"] come
-                # from one instant: the checkpoint's (the run's last one is taken as it ends)
-                run.live = jsonable({**(run.live or {}), "progress": progress})
+                # from one instant: the checkpoint's (the run's last one is taken as it ends); only the live
+                # column is read, not the row with its previous checkpoint
+                live = s.scalar(select(Run.live).where(Run.id == rid)) or {}
+                s.execute(update(Run).where(Run.id == rid).values(live=jsonable({**live, "progress": progress})))
 
     def load_checkpoint(self, run_id: str) -> dict[str, Any] | None:
         with self.db.session() as s:
@@ -241,7 +250,7 @@ class SqlRunStore:
                         info: dict[str, Any] | None = None) -> None:
         rid = run_key(run_id)
         with self.db.session() as s:
-            self._owned(s, rid)
+            self._check_owned(s, rid)
             step = s.scalars(select(Step).where(Step.run_id == rid, Step.index == index)).first()
             if step is None:
                 raise StorageError(f"run {rid} has no step {index} ({kind})")
@@ -326,7 +335,7 @@ class SqlRunStore:
 
     def open_suspension(self, run_id: str, t_from: float, reason: str) -> int:
         with self.db.session() as s:
-            self._owned(s, run_key(run_id))
+            self._check_owned(s, run_key(run_id))
             sid = int(queries.begin_suspension(s, run_key(run_id), t_from, reason).id)
         self.writer(run_id).begin_suspension(t_from)      # frames lost meanwhile: a suspension gap
         return sid
@@ -334,7 +343,7 @@ class SqlRunStore:
     def close_suspension(self, run_id: str, suspension_id: Any, t_to: float, reason: str) -> None:
         rid = run_key(run_id)
         with self.db.session() as s:
-            self._owned(s, rid)
+            self._check_owned(s, rid)
             sus = s.get(Suspension, int(suspension_id))
             if sus is None or sus.run_id != rid:
                 raise StorageError(f"run {rid} has no suspension {suspension_id}")

@@ -93,9 +93,11 @@ def _probe_columns(db: Database, run_id: int, t: np.ndarray, max_age_s: float) -
         rows = conn.execute(select(p.name, p.t, p.celsius).where(p.run_id == run_id, p.celsius.is_not(None))
                             .order_by(p.name, p.t)).all()
     cols: dict[str, np.ndarray] = {}
-    names = sorted({name for name, _, _ in rows})
-    for name in names:
-        arr = np.array([(t_, c) for n, t_, c in rows if n == name], dtype=np.float64)
+    by_name: dict[str, list[tuple[float, float]]] = {}
+    for name, t_, c in rows:            # one pass over the readings (every 2 s per probe for the whole run)
+        by_name.setdefault(name, []).append((t_, c))
+    for name in sorted(by_name):
+        arr = np.array(by_name[name], dtype=np.float64)
         # a gap counts as a lost probe when it is much longer than this probe's usual read interval
         usual = float(np.median(np.diff(arr[:, 0]))) if len(arr) > 2 else 0.0
         cols[f"temp_{name}"] = _interpolated(arr[:, 0], arr[:, 1], t, max(max_age_s, 5.0 * usual))

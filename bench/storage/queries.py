@@ -118,6 +118,17 @@ def get_run(session: Session, run_id: int, *, for_update: bool = False) -> Run:
     return run
 
 
+def run_worker(session: Session, run_id: int, *, for_update: bool = False) -> str | None:
+    """The run's ``worker`` column alone (its JSON columns are not read), the row locked if asked."""
+    stmt = select(Run.worker).where(Run.id == run_id)
+    if for_update and session.get_bind().dialect.name == "postgresql":
+        stmt = stmt.with_for_update()
+    row = session.execute(stmt).first()
+    if row is None:
+        raise UnknownRun(f"run {run_id} does not exist")
+    return row[0]
+
+
 def list_runs(session: Session, *, status: str | Iterable[str] | None = None, limit: int | None = None) -> list[Run]:
     stmt = select(Run).order_by(Run.id.desc())
     if status is not None:
