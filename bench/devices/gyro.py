@@ -87,6 +87,7 @@ class GyroSerialLink(BackgroundLoop):
         self._rx_pending = bytearray()       # lockstep: bytes read but not yet decoded
         self._rx_bytes = 0                   # bytes read on the current connection
         self._local_addr: tuple | None = None
+        self._served = False                 # lockstep: the simulator reported serving this connection
         self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
         self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
         self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
@@ -140,6 +141,7 @@ class GyroSerialLink(BackgroundLoop):
                 self._rx_bytes = 0
                 self._rx_pending.clear()
                 self._local_addr = tuple(sock.getsockname()[:2]) if sock is not None else None
+                self._served = False
             return port
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkDown(f"gyro serial link {self.config.url!r}: cannot open: {exc}") from None
@@ -207,6 +209,7 @@ class GyroSerialLink(BackgroundLoop):
         sent = reports.get(self.lockstep_name) or {}
         port = self._port
         if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
+            self._served = True
             deadline = time.monotonic() + self.receive_wait_s
             while self._rx_bytes < sent["bytes"]:
                 try:
@@ -222,7 +225,8 @@ class GyroSerialLink(BackgroundLoop):
                     self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
                                        f"not received within {self.receive_wait_s:g} s")
                     break
-        elif port is not None and sent.get("closed") is not None and tuple(sent["closed"]) == self._local_addr:
+        elif (port is not None and self._served and sent.get("closed") is not None
+              and tuple(sent["closed"]) == self._local_addr):       # served, then closed: a dropped line
             self._await_end(port, t)
         with self._rx_cond:
             data, self._rx_pending = bytes(self._rx_pending), bytearray()
