@@ -318,3 +318,43 @@ def test_source_failure_is_reported_not_swallowed(clock):
         assert "3 rates" in str(sim.error)
     finally:
         sim.stop()
+
+
+def test_lockstep_drop_lands_on_its_bench_instant_while_the_simulator_reads_commands():
+    """Lockstep: a dropped line is lost at the bench instant the simulator closed it, reconnects are
+    refused from that instant on, and the gap ends at the first attempt after the line is back; the
+    simulator's command-reading thread selects on the same sockets all along (it holds them while it
+    waits, so a plain close ended the connection, and stopped the listening, only once that thread let
+    go of them: a wall-clock moment, seen as drops landing on later instants under load).  Twenty drops,
+    each checked at its instant, with the clock unpaced (no wall time between instants)."""
+    from bench.clock import LockstepClock
+
+    clock = LockstepClock(T0, pace=None)
+    sim = GyroStreamSimulator(RampSource(), clock, 1, "kvh_a")
+    sim.start()
+    clock.serve("gyro", sim.serve)
+    link = GyroSerialLink(GyroConfig(url=sim.url, data_rate_hz=1, reconnect_s=0.5), clock)
+    link.start()
+    try:
+        t = T0
+        expected = []
+        for _ in range(20):
+            t += 3.0
+            clock.advance_to(t)
+            assert link.connected and sim.client_connected
+            sim.faults.drop_link(None)              # acts at the next instant the clock serves
+            clock.advance_to(t + 1.0)
+            assert not link.connected, f"the drop at {t + 1.0 - T0} was not seen at its instant"
+            for k in range(2, 5):                   # attempts due at +1.5, +2.5, +3.5: refused
+                clock.advance_to(t + k)
+                assert not link.connected and not sim.client_connected
+            sim.faults.restore_link()
+            clock.advance_to(t + 5.0)               # listening again, the attempt due at +4.5 is made
+            expected.append((t + 1.0, t + 5.0))
+            assert link.stats.link_gaps == expected
+            t += 5.0
+        assert link.receive_timeouts == 0
+        assert link.stats.reconnects == 20
+    finally:
+        link.stop()
+        sim.stop()

@@ -558,3 +558,72 @@ def test_reconnect_gap_is_bench_time_whatever_the_pace(tmp_path, paces):
     t_from, t_to, _ = seen[0]
     # from g2's last frame before the drop at +40 s to its first after the reconnect at or after +70 s
     assert 38.0 <= t_from < 40.0 and 70.0 <= t_to <= 72.0
+
+
+@pytest.mark.parametrize("back_before_resume", [False, True])
+def test_resume_rebuilds_what_the_shared_supply_missed(tmp_path, back_before_resume):
+    """The bench's multi-channel supply (g1, g2) refuses connections from the start, so the power-on
+    misses both channels (each unit due its commanded state, its frames the bench's condition); the
+    engine dies (kill -9) at +100 s while the run is suspended.  Those per-unit states are not in the
+    checkpoint: the resume sends every unit's settings and the commanded output again, and whatever
+    misses them is due again.  Supply still down at the resume (back at +300 s): the run suspends on it
+    again and the power goes out once it answers; supply back before the resume: the resume's own
+    commands power both channels and nothing is due after them.  Either way no unit is faulted and all complete."""
+    from tests.test_engine_doubles import Killed, Scripted, kill_at
+
+    db = open_database(f"sqlite:///{tmp_path / 'psu-resume.sqlite'}")
+    clock = lockstep_clock(None, 27)
+    clock.fixed_outage_s = 60.0                  # the outage lasts 60 bench seconds after the checkpoint
+    bench = MultiGyroBench(units=3, clock=clock, seed=27, own_supplies=["g3"]).start()
+    try:
+        cfg = bench.bench_config()
+        ec = engine_config_for(clock).model_copy(update={"settle_s": 20.0, "checkpoint_period_s": 30.0})
+        t0 = clock.now()
+        bench.drop_supply(None, t0, t0 + (130.0 if back_before_resume else 300.0))
+        run_id = new_run(db, procedure="power", parameters={}, config_snapshot=cfg.model_dump(mode="json"),
+                         gyro_id=None, bench_name=cfg.name, units=cfg.assign_gyros(["P-1", "P-2", "P-3"]))
+        for attempt in ("run", "resume"):
+            store = SqlRunStore(db, geometry=cfg.turntable.geometry)
+            devices = build_devices(cfg, clock)
+            control = Scripted(clock, [(100.0, kill_at(100.0))]) if attempt == "run" else None
+            engine = Engine(devices, store, clock, cfg, control=control, engine_config=ec)
+            try:
+                if attempt == "run":
+                    with pytest.raises(Killed):
+                        engine.run(str(run_id), _power_plan())
+                else:
+                    status = engine.resume(str(run_id))
+            finally:
+                store.close(run_id)
+                close_devices(devices)
+            if attempt == "run":
+                n_before = len(bench.psu.received.entries())
+        shared = [e.request.upper() for e in bench.psu.received.entries()]
+    finally:
+        bench.stop()
+    try:
+        assert status == "completed"
+        with db.session() as s:
+            (t_resume,) = [e.t_bench for e in queries.list_events(s, run_id) if e.kind == "run_resumed"]
+        assert t0 + 130.0 < t_resume < t0 + 300.0      # between the two supply outcomes
+        report = run_report(db, run_id)
+        units = {u["slot"]: u for u in report["units"]}
+        assert [units[s]["status"] for s in ("g1", "g2", "g3")] == ["completed"] * 3
+        events = _events(db, run_id)
+        kinds = [k for k, _ in events]
+        assert "unit_fault" not in kinds and "unit_power_failed" not in kinds
+        resumed_at = kinds.index("run_resumed")
+        after = kinds[resumed_at:]
+        assert all(s["reason"].startswith("power supply link down") for s in report["suspensions"])
+        for ch in (1, 2):
+            outp = [c for c in shared[n_before:] if c.startswith(f"INST:NSEL {ch};:OUTP") and not c.endswith("?")]
+            assert outp[-2:] == [f"INST:NSEL {ch};:OUTP ON", f"INST:NSEL {ch};:OUTP OFF"], shared[n_before:]
+            assert set(outp[:-1]) == {f"INST:NSEL {ch};:OUTP ON"}
+        if back_before_resume:      # the resume's own commands reached the supply: nothing was due after them
+            assert "power_failed" not in after and "unit_power_restored" not in after
+        else:                       # missed again at the resume: due again, sent once the supply answered
+            assert after.count("power_failed") == 1 and after.count("unit_power_restored") == 2
+            last_susp = report["suspensions"][-1]
+            assert last_susp["t_to"] >= t0 + 300.0
+    finally:
+        db.dispose()

@@ -20,9 +20,11 @@ and counted in ``queue_overflows``.
 Link loss (a read/open exception, EOF on a socket) is recorded: the gap starts at the bench
 time of detection; the thread retries every ``config.reconnect_s`` wall seconds; on success
 ``(gap_from, gap_to)`` is appended to ``stats.link_gaps`` and ``stats.reconnects`` is
-incremented.  On a lockstep clock the receiver retries instead, at the first bench instant
-``config.reconnect_s`` bench seconds after the loss or the last attempt, and the gap ends at the
-bench instant the line opened again: the recorded gap does not depend on the pace or the load.  The decoder is reset (partial bytes and sequence forgotten) so frames lost in
+incremented.  On a lockstep clock the loss is the bench instant at which the simulator reports having closed the
+connection (the receiver waits for its end, as it waits for an instant's bytes); the receiver retries
+at the first bench instant ``config.reconnect_s`` bench seconds after the loss or the last attempt,
+and the gap ends at the bench instant the line opened again: the recorded gap does not depend on the
+pace or the load.  The decoder is reset (partial bytes and sequence forgotten) so frames lost in
 the gap are not miscounted mod 128.  A line that merely goes silent (an unplugged RS-422
 cable, a pty) raises nothing and is not a link gap; the sequence check reports the lost frames
 if fewer than 128.
@@ -85,6 +87,7 @@ class GyroSerialLink(BackgroundLoop):
         self._rx_pending = bytearray()       # lockstep: bytes read but not yet decoded
         self._rx_bytes = 0                   # bytes read on the current connection
         self._local_addr: tuple | None = None
+        self._served = False                 # lockstep: the simulator reported serving this connection
         self.receive_timeouts = 0            # lockstep instants whose bytes did not all arrive in time
         self.receive_wait_s = 10.0           # wall seconds to wait for an instant's bytes
         self._gap_from: float | None = None  # lockstep: bench time the receiver lost the line
@@ -138,6 +141,7 @@ class GyroSerialLink(BackgroundLoop):
                 self._rx_bytes = 0
                 self._rx_pending.clear()
                 self._local_addr = tuple(sock.getsockname()[:2]) if sock is not None else None
+                self._served = False
             return port
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkDown(f"gyro serial link {self.config.url!r}: cannot open: {exc}") from None
@@ -205,6 +209,7 @@ class GyroSerialLink(BackgroundLoop):
         sent = reports.get(self.lockstep_name) or {}
         port = self._port
         if (port is not None and sent.get("peer") is not None and tuple(sent["peer"]) == self._local_addr):
+            self._served = True
             deadline = time.monotonic() + self.receive_wait_s
             while self._rx_bytes < sent["bytes"]:
                 try:
@@ -220,8 +225,9 @@ class GyroSerialLink(BackgroundLoop):
                     self.last_error = (f"bench instant {t:.3f}: {sent['bytes'] - self._rx_bytes} bytes "
                                        f"not received within {self.receive_wait_s:g} s")
                     break
-        elif port is not None and "peer" in sent and self._local_addr is not None:
-            self._check_dropped(port)
+        elif (port is not None and self._served and sent.get("closed") is not None
+              and tuple(sent["closed"]) == self._local_addr):       # served, then closed: a dropped line
+            self._await_end(port, t)
         with self._rx_cond:
             data, self._rx_pending = bytes(self._rx_pending), bytearray()
         if data:
@@ -257,21 +263,27 @@ class GyroSerialLink(BackgroundLoop):
         self.stats.reconnects += 1
         return True
 
-    def _check_dropped(self, port: serial.SerialBase) -> None:
-        """Lockstep: the simulator serves no connection of ours; if it closed ours (a dropped line),
-        close the port so that the receiver reconnects (and records the gap) as on a real line."""
-        try:
-            port.timeout = 0
-            data = port.read(65536)
-        except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
-            self.last_error = f"{type(exc).__name__}: {exc}"
-            self._lost(self.clock.now())
-            return
-        finally:
-            if self._port is port:
-                port.timeout = self.read_timeout_s
-        if data:
-            self._on_bytes(data)
+    def _await_end(self, port: serial.SerialBase, t: float) -> None:
+        """Lockstep: the simulator closed our connection (a dropped line) by bench instant ``t``: read
+        the bytes still on it up to its end (EOF), then the line is lost at ``t``, as a real receiver
+        sees a dropped line; waits at most ``receive_wait_s`` wall seconds for that end (then the line is
+        taken as lost all the same: the simulator said so)."""
+        deadline = time.monotonic() + self.receive_wait_s
+        while True:
+            try:
+                data = port.read(65536)
+            except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                self._lost(t)
+                return
+            if data:
+                self._on_bytes(data)
+            elif time.monotonic() > deadline:
+                self.receive_timeouts += 1
+                self.last_error = (f"bench instant {t:.3f}: the end of the connection the simulator closed "
+                                   f"did not arrive within {self.receive_wait_s:g} s")
+                self._lost(t)
+                return
 
     def _read_now(self) -> None:
         """Lockstep: take whatever bytes are waiting (command replies), without blocking."""

@@ -9,8 +9,12 @@ each frame the source gets ``advance_to(t)`` then ``sample(t)`` with the same, n
 
 On a lockstep clock (``bench.clock.LockstepClock``) the thread produces nothing by itself: the
 clock calls ``serve(t)`` at each bench instant, which accepts a waiting client, writes every frame
-due up to ``t`` and reports ``{"peer": client address, "bytes": bytes written on this connection}``
-so the driver can wait for exactly those bytes.
+due up to ``t`` and reports ``{"peer": client address, "bytes": bytes written on this connection,
+"closed": address of the last client connection it closed}`` so the driver can wait for exactly
+those bytes, and for the end of a connection the simulator closed (a dropped line), before the
+instant is over.  A closed connection is shut down first, so its end (EOF) is on the line at once,
+even while the command-reading thread still selects on the socket (a plain close would only end it
+once that thread let go of it, a wall-clock moment).
 
 Budget: frames per *wall* second = data_rate_hz x clock speed.  The encoder makes ~100k frames/s
 on one core, so keep that product well below (e.g. 1 Hz at speed 3600).  If the simulator
@@ -58,6 +62,7 @@ corrupted them): tests compare what the driver accepted against it.
 from __future__ import annotations
 
 import collections
+import contextlib
 import errno
 import logging
 import math
@@ -168,6 +173,7 @@ class GyroStreamSimulator:
         self._poll_s = 0.05 if self._lockstep else 0.002
         self._client_bytes = 0           # bytes written on the current client connection
         self._client_peer: tuple | None = None
+        self._closed_peer: tuple | None = None   # the last client connection closed (its address)
         self._listener: socket.socket | None = None
         self._client: socket.socket | None = None
         self._pty_master: int | None = None
@@ -248,17 +254,27 @@ class GyroStreamSimulator:
 
     def _close_listener(self) -> None:
         if self._listener is not None:
+            # shutdown stops listening now (a reconnect is refused from this instant on); close alone
+            # would wait for the command-reading thread's select to let go of the socket
+            with contextlib.suppress(OSError):
+                self._listener.shutdown(socket.SHUT_RDWR)
             self._listener.close()
             self._listener = None
 
-    def _close_client(self) -> None:
-        if self._client is not None:
-            try:
-                self._client.close()
-            finally:
-                self._client = None
-                self._client_peer = None
-                self._cmd_buf = b""
+    def _close_client(self, client: socket.socket | None = None) -> None:
+        """Close the client connection (only if it is still ``client``, when given): the lockstep
+        thread (a drop) and the command-reading thread (the client went away) both may."""
+        with self._lock:
+            conn = self._client
+            if conn is None or (client is not None and conn is not client):
+                return
+            self._client = None
+            self._closed_peer, self._client_peer = self._client_peer, None
+            self._cmd_buf = b""
+            # shutdown ends the connection now; close alone would wait for the reading thread's select
+            with contextlib.suppress(OSError):
+                conn.shutdown(socket.SHUT_RDWR)
+            conn.close()
 
     # ------------------------------------------------------------------ main loop
     def _run(self) -> None:
@@ -309,7 +325,7 @@ class GyroStreamSimulator:
                 if ready:
                     self._accept()
             self._produce_due_frames_locked(t)
-            return {"peer": self._client_peer, "bytes": self._client_bytes}
+            return {"peer": self._client_peer, "bytes": self._client_bytes, "closed": self._closed_peer}
 
     def _service_link(self) -> None:
         if self.faults.take_drop_request():
@@ -342,12 +358,15 @@ class GyroStreamSimulator:
         self._client = conn
 
     def _read_commands_socket(self) -> None:
+        client = self._client
+        if client is None:
+            return
         try:
-            data = self._client.recv(4096)
+            data = client.recv(4096)
         except OSError:
             data = b""
         if not data:
-            self._close_client()
+            self._close_client(client)
             return
         self._handle_command_bytes(data)
 
