@@ -42,6 +42,11 @@ TRAIN_PROFILE = [("hold", 3600), ("ramp", 60, 1.0), ("hold", 5400), ("ramp", -20
                  ("hold", 3600)]
 VALIDATE_PROFILE = [("hold", 1800), ("ramp", -10, 0.7), ("hold", 7200), ("ramp", 55, 1.5), ("hold", 3600),
                     ("ramp", 10, 0.3), ("hold", 5400), ("ramp", 40, 1.2), ("hold", 3600)]
+# 3302 s of training and 1402 s of validation at dt=1: just above the close-loop minimum lengths
+# (bench.fit.closeloop.MIN_TRAIN_S, MIN_VALIDATE_S), for tests about storage, jobs and pages rather than
+# about what the analysis can resolve
+SHORT_TRAIN_PROFILE = [("hold", 300), ("ramp", 55, 2.0), ("hold", 600), ("ramp", 15, 2.0), ("hold", 300)]
+SHORT_VALIDATE_PROFILE = [("hold", 150), ("ramp", 45, 2.0), ("hold", 250), ("ramp", 35, 2.0), ("hold", 100)]
 
 
 def make_run(profile, hidden: dict | None = None, seed: int = 0, power_cycles: int = 0, probes=PROBE_TAUS, dt=DT,

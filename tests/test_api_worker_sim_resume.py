@@ -35,7 +35,8 @@ def test_killed_worker_on_the_simulated_bench_is_taken_over_and_the_run_complete
             first = _worker(services, tmp_path)
             with db.session() as s:
                 rid = queries.create_run(s, procedure="thermal_ramp", bench_name="simk", gyro_id="SIMK",
-                                         parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.1)).id
+                                         parameters=dict(SHORT_RAMP, orientation=None, soak_h=0.02, warmup_min=0.5,
+                                                         end_c=26.0, final_hold_min=0.5)).id
             # until it is suspended on the alarm with a checkpoint stored
             services.wait_for(lambda: (r := _run(db, rid)).status == "suspended" and r.checkpoint is not None,
                               "the run suspended with a checkpoint", first, interval=0.2)

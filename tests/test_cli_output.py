@@ -48,21 +48,35 @@ def test_every_option_and_argument_says_what_it_is():
     assert not bare, bare
 
 
-@pytest.fixture()
-def stored(tmp_path, monkeypatch):
+def _unopenable(tmp) -> str:
+    return f"sqlite:///{tmp / 'missing-dir' / 'nowhere.sqlite'}"
+
+
+@pytest.fixture(scope="module")
+def imported(tmp_path_factory):
     """Two runs imported with ``--db`` into a fresh SQLite file, while $BENCH_DATABASE_URL names a database
-    that cannot be opened: anything that ignored ``--db`` would fail."""
-    monkeypatch.setenv("BENCH_DATABASE_URL", f"sqlite:///{tmp_path / 'missing-dir' / 'nowhere.sqlite'}")
-    url = f"sqlite:///{tmp_path / 'bench.sqlite'}"
+    that cannot be opened: anything that ignored ``--db`` would fail.  Imported once for the module: the
+    tests only read them (``fit`` and ``close-loop`` store nothing)."""
+    tmp = tmp_path_factory.mktemp("cli-output")
+    url = f"sqlite:///{tmp / 'bench.sqlite'}"
     ids = []
-    for profile, seed, name in ((TRAIN_PROFILE, 1, "train.csv"), (VALIDATE_PROFILE, 2, "val.csv")):
-        ds, _ = make_run(profile, {"rate": 0.08}, seed=seed)
-        write_csv(ds, tmp_path / name)
-        code, out, err = _cli(["import", tmp_path / name, "--gyro", "CLI-1", "--db", url])
-        assert code == 0, err
-        ids.append(int(re.match(r"run (\d+):", out).group(1)))
-        assert re.search(r"import\b.*\b\d+/", err), err           # the streamed import's progress, on stderr
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("BENCH_DATABASE_URL", _unopenable(tmp))
+        for profile, seed, name in ((TRAIN_PROFILE, 1, "train.csv"), (VALIDATE_PROFILE, 2, "val.csv")):
+            ds, _ = make_run(profile, {"rate": 0.08}, seed=seed)
+            write_csv(ds, tmp / name)
+            code, out, err = _cli(["import", tmp / name, "--gyro", "CLI-1", "--db", url])
+            assert code == 0, err
+            ids.append(int(re.match(r"run (\d+):", out).group(1)))
+            assert re.search(r"import\b.*\b\d+/", err), err       # the streamed import's progress, on stderr
     return url, ids
+
+
+@pytest.fixture()
+def stored(imported, tmp_path, monkeypatch):
+    """The imported runs, with $BENCH_DATABASE_URL again naming a database that cannot be opened."""
+    monkeypatch.setenv("BENCH_DATABASE_URL", _unopenable(tmp_path))
+    return imported
 
 
 def test_fit_and_close_loop_on_runs_of_db_print_one_json_object_and_progress(stored):

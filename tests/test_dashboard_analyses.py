@@ -2,7 +2,8 @@
 ``chromium`` driven by PyPI ``playwright``; never ``playwright install``) against ``bench serve``.
 
 Stored beforehand in the service's SQLite file: two measured-data runs of each of two gyros (synthetic
-S000-like ramps; gyro A's carries a hidden dT/dt effect).  Through the API the test fits two models
+ramps just above the close-loop minimum lengths: the pages are under test here, not what the analysis can
+resolve; gyro A's carry a hidden dT/dt effect).  Through the API the test fits two models
 and closes the loop; then, in the browser: the fits list and the close-the-loop list filtered by gyro,
 model and date; an analysis page whose effects are a table (no raw JSON) and whose report shows 100-s
 means before and after at full width; a thermal ramp on the simulated bench whose run page keeps one
@@ -20,7 +21,7 @@ import pytest
 from tests.browser_support import (ARTIFACTS, T0, TOKENS, chromium_context, dashboard_service, get_json, post_json,
                                    shot, use_token)
 from tests.service_support import SAFETY_S, wait_for
-from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
+from tests.synth import SHORT_TRAIN_PROFILE, SHORT_VALIDATE_PROFILE, make_run
 
 # bench time: soak 72 s, warm-up 60 s, ramp 30 -> 12 C at 1 C/min from about T0 + 132 s to T0 + 1212 s,
 # hold 120 s; the run page is read at two instants of the ramp.  Elapsed and remaining bench time come
@@ -43,8 +44,8 @@ def service(tmp_path_factory):
     runs = {}
     try:
         for gyro, hidden in (("GYRO-A", {"rate": 0.08}), ("GYRO-B", {})):
-            train, _ = make_run(TRAIN_PROFILE, hidden, seed=11)
-            val, _ = make_run(VALIDATE_PROFILE, hidden, seed=12)
+            train, _ = make_run(SHORT_TRAIN_PROFILE, hidden, seed=11, dt=1.0)
+            val, _ = make_run(SHORT_VALIDATE_PROFILE, hidden, seed=12, dt=1.0)
             runs[gyro] = (import_dataset(db, train, gyro, source="train.csv"),
                           import_dataset(db, val, gyro, source="val.csv"))
     finally:

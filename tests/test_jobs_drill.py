@@ -24,10 +24,9 @@ from tests import synth
 from tests.api_support import OPERATOR, TOKENS_TEXT, VIEWER
 from tests.service_support import SAFETY_S, Services, wait_for
 
-# 3302 s of training and 1402 s of validation at 1 s: just above MIN_TRAIN_S and MIN_VALIDATE_S
-TRAIN = [("hold", 300), ("ramp", 55, 2.0), ("hold", 600), ("ramp", 15, 2.0), ("hold", 300)]
-VALIDATE = [("hold", 150), ("ramp", 45, 2.0), ("hold", 250), ("ramp", 35, 2.0), ("hold", 100)]
 HIDDEN = {"gradient": 0.06, "rate": 0.08}
+
+
 @pytest.fixture(params=["sqlite", "postgresql"])
 def db_url(request, tmp_path):
     if request.param == "sqlite":
@@ -54,8 +53,8 @@ def _job(db, job_id: int) -> Analysis:
 def _import_pair(db):
     from bench.commands.service import import_dataset
 
-    train, _ = synth.make_run(TRAIN, HIDDEN, seed=1, dt=1.0)
-    validate, _ = synth.make_run(VALIDATE, HIDDEN, seed=2, dt=1.0)
+    train, _ = synth.make_run(synth.SHORT_TRAIN_PROFILE, HIDDEN, seed=1, dt=1.0)
+    validate, _ = synth.make_run(synth.SHORT_VALIDATE_PROFILE, HIDDEN, seed=2, dt=1.0)
     return import_dataset(db, train, "G-DRILL"), import_dataset(db, validate, "G-DRILL")
 
 
