@@ -231,16 +231,15 @@ class SqlRunStore:
         rid = run_key(run_id)
         progress = checkpoint.get("progress") or {}
         percent = progress.get("percent")
+        doc = jsonable(checkpoint)
         with self._live_lock, self.db.session() as s:
             self._check_owned(s, rid)
-            queries.save_checkpoint(s, rid, jsonable(checkpoint), current_step=int(checkpoint.get("step_index", 0)),
-                                    progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)))
-            if progress:
-                # the run's percent above and its elapsed / remaining bench time in live["progress"] come
-                # from one instant: the checkpoint's (the run's last one is taken as it ends); only the live
-                # column is read, not the row with its previous checkpoint
-                live = s.scalar(select(Run.live).where(Run.id == rid)) or {}
-                s.execute(update(Run).where(Run.id == rid).values(live=jsonable({**live, "progress": progress})))
+            # the run's percent and its elapsed / remaining bench time in live["progress"] come from one
+            # instant: the checkpoint's (the run's last one is taken as it ends); the database sets that
+            # one entry of live in the same statement, without the document passing through here
+            queries.save_checkpoint(s, rid, doc, current_step=int(checkpoint.get("step_index", 0)),
+                                    progress=None if percent is None else min(1.0, max(0.0, percent / 100.0)),
+                                    live_entry=("progress", doc["progress"]) if progress else None)
 
     def load_checkpoint(self, run_id: str) -> dict[str, Any] | None:
         with self.db.session() as s:

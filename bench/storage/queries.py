@@ -5,10 +5,12 @@ suspensions, gaps, gyros, benches and versioned fits.  Every function takes an o
 from __future__ import annotations
 
 import datetime as dt
+import json
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from sqlalchemy import func, select, update
+from sqlalchemy import String, case, cast, func, literal, select, update
+from sqlalchemy.dialects.postgresql import ARRAY, JSONB
 from sqlalchemy.orm import Session
 
 from bench.storage.errors import InvalidTransition, StorageError, UnknownRun
@@ -215,8 +217,23 @@ def stale_runs(session: Session, older_than: dt.timedelta) -> list[Run]:
                                                   (Run.heartbeat_at.is_(None)) | (Run.heartbeat_at < limit))))
 
 
+def live_with(session: Session, key: str, value: Any) -> Any:
+    """SQL for the run's ``live`` document with ``key`` set to ``value`` (plain JSON), the other entries
+    as they are: the database edits the document in place, so the engine does not read, decode and
+    encode the whole of it (the plan and its summary, tens of kB) to change one entry."""
+    text = json.dumps(value, allow_nan=False, separators=(",", ":"))
+    if session.get_bind().dialect.name == "postgresql":
+        doc = case((func.jsonb_typeof(Run.live) == "object", Run.live), else_=cast(literal("{}", String), JSONB))
+        return func.jsonb_set(doc, literal([key], ARRAY(String)), cast(literal(text, String), JSONB))
+    doc = case((func.json_type(Run.live) == "object", Run.live), else_=literal("{}"))   # SQL NULL or JSON null: {}
+    return func.json_set(doc, f"$.{key}", func.json(text))
+
+
 def save_checkpoint(session: Session, run_id: int, checkpoint: Mapping[str, Any], *,
-                    current_step: int | None = None, progress: float | None = None) -> None:
+                    current_step: int | None = None, progress: float | None = None,
+                    live_entry: tuple[str, Any] | None = None) -> None:
+    """Store the run's checkpoint (and ``current_step`` / ``progress`` 0..1); ``live_entry``: a
+    ``(key, value)`` set in the run's ``live`` document by the same statement (``live_with``)."""
     values: dict[str, Any] = {"checkpoint": dict(checkpoint)}
     if current_step is not None:
         values["current_step"] = current_step
@@ -224,6 +241,8 @@ def save_checkpoint(session: Session, run_id: int, checkpoint: Mapping[str, Any]
         if not 0.0 <= progress <= 1.0:
             raise ValueError(f"progress must be within 0..1, got {progress}")
         values["progress"] = progress
+    if live_entry is not None:
+        values["live"] = live_with(session, *live_entry)
     if session.execute(update(Run).where(Run.id == run_id).values(**values)).rowcount != 1:
         raise UnknownRun(f"run {run_id} does not exist")
 
