@@ -103,6 +103,9 @@ class SqlRunStore:
         self._writers: dict[int, FrameWriter] = {}
         self._formats: dict[int, dict[str, Any]] = {}     # per-run frame kind / rate (multi-gyro units)
         self._table: dict[int, dict[int, AxisState]] = {}
+        # the last table angles looked up as an orientation code and the answer: every unit of a
+        # multi-gyro run stores the same table telemetry, so its segments ask for the same angles
+        self._orientation_memo: tuple[Any, tuple[str | None, float, float]] | None = None
         self._lock = threading.Lock()
         # ``runs.live`` is one JSON document edited read-modify-write by the engine (status, plan, fits)
         # and by the heartbeat thread (progress): one edit at a time in this process, or a heartbeat that
@@ -130,6 +133,9 @@ class SqlRunStore:
     # ---- writers ----------------------------------------------------------------------------
     def writer(self, run_id: str | int) -> FrameWriter:
         rid = run_key(run_id)
+        w = self._writers.get(rid)          # made once per run: found without the lock every later time
+        if w is not None:
+            return w
         with self._lock:
             w = self._writers.get(rid)
             if w is None:
@@ -301,13 +307,19 @@ class SqlRunStore:
         b = axes.get(self.geometry.inner_axis_number)
         if a is None or b is None:
             return None, None, None
+        key = (self.geometry, a.position_deg, a.rate_dps, b.position_deg, b.rate_dps)
+        memo = self._orientation_memo
+        if memo is not None and memo[0][0] is key[0] and memo[0][1:] == key[1:]:
+            return memo[1]
         code = None
         if abs(a.rate_dps) < AT_REST_DPS and abs(b.rate_dps) < AT_REST_DPS:
             from bench.devices.orientation import code_at
 
             nearest, off_deg = code_at(a.position_deg, b.position_deg, self.geometry)
             code = nearest if off_deg <= CODE_MATCH_DEG else None
-        return code, a.position_deg, b.position_deg
+        result = (code, a.position_deg, b.position_deg)
+        self._orientation_memo = (key, result)
+        return result
 
     def add_segment(self, run_id: str, step_index: int, kind: str, t_from: float, t_to: float,
                     labels: dict[str, Any]) -> None:

@@ -58,6 +58,9 @@ log = logging.getLogger(__name__)
 _SUM_COLUMNS = SUM_FIELDS
 _ROW_TABLES = {"gaps": Gap.__table__, "probe_readings": ProbeReadingRow.__table__,
                "telemetry": Telemetry.__table__, "events": Event.__table__, "segments": Segment.__table__}
+# a telemetry row: every column but the key, in table order; the values a caller may give
+_TELEMETRY_ROW = tuple(c for c in Telemetry.__table__.c.keys() if c != "id")
+_TELEMETRY_VALUES = frozenset(_TELEMETRY_ROW) - {"run_id", "t", "device"}
 
 
 @dataclass(frozen=True)
@@ -629,11 +632,10 @@ class FrameWriter:
         self.add_telemetry(t, "psu", psu_volts=volts, psu_amps=amps, psu_on=on)
 
     def add_telemetry(self, t: float, device: str, **values: Any) -> None:
-        table = Telemetry.__table__
-        unknown = [k for k in values if k not in table.c or k in ("id", "run_id", "t", "device")]
+        unknown = [k for k in values if k not in _TELEMETRY_VALUES]
         if unknown:
             raise ValueError(f"telemetry has no column(s) {unknown}")
-        row = {c: None for c in table.c.keys() if c not in ("id",)}
+        row = dict.fromkeys(_TELEMETRY_ROW)
         row.update(values, run_id=self.run_id, t=float(t), device=device)
         with self._cond:
             self._check_usable()
