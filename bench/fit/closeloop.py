@@ -190,11 +190,25 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     problem.n_eff_noise = max(10.0, len(problem.yb) * (1 - rho) / (1 + rho))
     stop = STOP_RATIO * floor_start["noise_floor_dph"] if np.isfinite(floor_start["noise_floor_dph"]) else None
 
+    noise_models: dict[tuple[str, ...], Any] = {(): model_start}
+
+    def noise_for(effs):
+        # the noise model of the full-rate training residual of the declared model plus ``effs``
+        key = tuple(e.label for e in effs)
+        got = noise_models.get(key)
+        if got is None:
+            Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
+            r = y_train - Xt @ lstsq(Xt, y_train)
+            if len(noise_models) > 64:
+                noise_models.clear()
+            got = noise_models[key] = fit_noise_model([(r, sample_period(t_tr), t_tr)])
+        return got
+
+    problem.noise_for = noise_for
+
     def stop_at(effs) -> float:
         # once effects are in, the residual's own noise floor (flicker included) is the target
-        Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
-        r = y_train - Xt @ lstsq(Xt, y_train)
-        fl = fit_noise_model([(r, sample_period(t_tr), t_tr)]).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
+        fl = noise_for(effs).floor(t_tr[-1] - t_tr[0])["noise_floor_dph"]
         return STOP_RATIO * fl if np.isfinite(fl) else np.inf
 
     chosen, steps = search(problem, stop_std100=stop, stop_at=stop_at)

@@ -84,6 +84,10 @@ class SearchProblem:
     families: list[fx.Family]
     n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
     fine_valid: np.ndarray | None = None   # fine-grid rows where the target was measured
+    # the noise model (``noisefloor.NoiseModel``) of the full-rate training residual of a design with
+    # these effects: the null hypothesis of the GLS gate (None: no GLS gate)
+    noise_for: Callable[[tuple[fx.Effect, ...]], Any] | None = None
+    _whiteners: dict[tuple, np.ndarray] = field(default_factory=dict, repr=False)
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
@@ -116,6 +120,30 @@ class SearchProblem:
         return np.column_stack([self.Xb] + [self.columns(e) for e in effects])
 
     # ---------------------------------------------------------------- fits
+    def block_index(self) -> np.ndarray:
+        """Each evidence block's number from the run's start (an outage keeps its lag)."""
+        if self._plan is None:
+            self._plan = BlockPlan(self.fine.time, BLOCK_S)
+        tb = self._plan.time_s
+        return np.round((tb - tb[0]) / BLOCK_S)
+
+    def gls_p(self, base: tuple[fx.Effect, ...], X0: np.ndarray, X1: np.ndarray) -> float:
+        """p of the GLS F test (``noisefloor.gls_f_test``) for the columns X1 adds to X0, under the
+        noise model of the base design's training residual; 0 when there is no noise model."""
+        from bench.fit.noisefloor import block_covariance, gls_f_test, gls_whitener
+
+        if self.noise_for is None:
+            return 0.0
+        ok = self.rows & np.all(np.isfinite(X1), axis=1)
+        key = (tuple(e.label for e in base), ok.tobytes())
+        W = self._whiteners.get(key)
+        if W is None:
+            model = self.noise_for(base)
+            if len(self._whiteners) > 32:
+                self._whiteners.clear()
+            W = self._whiteners[key] = gls_whitener(block_covariance(model, self.block_index()[ok]))
+        return gls_f_test(W, X0[ok], X1[ok], self.yb[ok])[1]
+
     def ssr(self, effects: tuple[fx.Effect, ...]) -> float:
         if effects:
             got = self.projector(effects[:-1]).ssr_with(self.columns(effects[-1]))
@@ -379,11 +407,19 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
     X = problem.design(new.effects)
     k0 = problem.design(base.effects).shape[1]
     p = hac_wald_p(X[problem.rows], problem.yb[problem.rows], list(range(k0, X.shape[1]))) if dbic > DBIC_MIN else 1.0
-    cv_gain, cv_note = problem.cv_gain(problem.design(base.effects), X)
+    X0 = problem.design(base.effects)
+    cv_gain, cv_note = problem.cv_gain(X0, X)
     cv_ok = (not np.isfinite(cv_gain)) or cv_gain >= MIN_CV_GAIN
-    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok)
+    # the GLS F test under the noise model's own covariance of block means (white and flicker terms of
+    # the base design's residual), judged only for what passed the other gates.  The candidate is the
+    # best of every family the step tried: its p is held to P_MAX / (number of families) (Bonferroni:
+    # the chance that the best of m noise-only candidates passes stays below P_MAX)
+    p_gls = problem.gls_p(base.effects, X0, X) if dbic > DBIC_MIN and p < P_MAX and cv_ok else float("nan")
+    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok and p_gls < P_MAX / max(1, len(problem.families)))
     out = {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
            "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
+    if np.isfinite(p_gls):
+        out["gls_f_p"] = float(p_gls)
     if cv_note:
         out["cv_not_applicable"] = cv_note
     return out
