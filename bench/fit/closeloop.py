@@ -285,6 +285,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     else:
         verdict = "no_effect_missing" if at else "unexplained_structure_remains"
 
+    step_found = next((s["time_drift_is_a_step"] for s in steps if "time_drift_is_a_step" in s), None)
+    if step_found is not None:
+        structure["train"]["bias_step"] = step_found
     added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
                 "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
@@ -431,6 +434,12 @@ def _findings(r: dict[str, Any]) -> str:
         lines.append(f"{e['kind']} ({params}) was chosen on the training run but did not generalise: the "
                      f"in-range validation std100 is {e['validation_std100_without_dph']:.4g} without it and "
                      f"{e['validation_std100_with_dph']:.4g} with it; it is left out.")
+    step = r["structure"]["train"].get("bias_step")
+    if step:
+        lines.append(f"The training residual holds a bias step of {step['step_dph']:.3g} deg/h at "
+                     f"{step['step_at_s'] / 3600:.2f} h, which a time drift describes worse (BIC "
+                     f"{step['bic_margin_over_drift']:.1f} behind the step): nothing recorded drives it, so no "
+                     "library effect is added for it.")
     st = r["structure"]["validation"] if r["structure"]["validation"].get("testable") else r["structure"]["train"]
     ratio = st.get("ratio_to_noise_floor", float("nan"))
     verdict = r["verdict"]

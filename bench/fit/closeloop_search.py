@@ -514,7 +514,58 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
                       "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
-    return prune(problem, chosen, steps), steps
+    chosen = prune(problem, chosen, steps)
+    return drop_drift_that_is_a_step(problem, chosen, steps), steps
+
+
+# the change point of a bias step is looked for away from the run's ends (a step in the first or last
+# few blocks is a level difference of a handful of points, which any slow term also fits)
+STEP_EDGE_BLOCKS = 5
+
+
+def drop_drift_that_is_a_step(problem: SearchProblem, effects: tuple[fx.Effect, ...],
+                              steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
+    """A time drift kept to describe what is in fact one abrupt change.  ``time_drift`` is a steady
+    change with time (ageing); a bias step at one instant (a mode hop, a shock, a connector) is not
+    driven by anything recorded, so it is no library effect.  A step (one column, 0 before and 1
+    after; its time searched over every evidence block away from the ends and charged as a searched
+    parameter) is fitted in the drift's place with the other effects held; when it beats the drift by
+    more than ``DBIC_MIN`` in BIC (strong evidence, the search's own bar) the time structure is a
+    step: the drift is left out and the step is reported as structure no recorded input explains."""
+    drift = [i for i, e in enumerate(effects) if e.kind == "time_drift"]
+    if not drift:
+        return effects
+    if problem._plan is None:
+        problem._plan = BlockPlan(problem.fine.time, BLOCK_S)
+    tb = problem._plan.time_s
+    if len(tb) < 4 * STEP_EDGE_BLOCKS:
+        return effects
+    i = drift[0]
+    others = effects[:i] + effects[i + 1:]
+    n_eff = problem.score(effects, with_cv=False).n_eff
+    proj = problem.projector(others)
+    t = problem.fine.time
+    valid = problem.fine_valid if problem.fine_valid is not None else np.ones(len(t), dtype=bool)
+    best = (np.inf, 0.0, None)
+    for t0 in tb[STEP_EDGE_BLOCKS:-STEP_EDGE_BLOCKS]:
+        col = problem._plan.means(np.where(valid, (t >= t0).astype(float), np.nan))[:, None]
+        got = proj.ssr_with(col)
+        if got is not None and got < best[0]:
+            best = (got, float(t0), col)
+    if best[2] is None:
+        return effects
+    b_drift = problem.bic(effects, n_eff)
+    # the others' columns and parameters are charged alike; the step pays one column and its time
+    charged_others = problem.bic(others, n_eff) - n_eff * np.log(max(problem.ssr(others), 1e-300))
+    b_step = n_eff * np.log(max(best[0], 1e-300)) + charged_others + 2.0 * np.log(n_eff)
+    if b_step < b_drift - DBIC_MIN:
+        X = np.column_stack([problem.design(others), best[2]])
+        ok = problem.rows & np.all(np.isfinite(X), axis=1)
+        size = float(_lstsq(X[ok], problem.yb[ok])[-1])
+        steps.append({"time_drift_is_a_step": {"step_at_s": float(best[1] - t[0]), "step_dph": size,
+                                               "bic_margin_over_drift": float(b_drift - b_step)}})
+        return others
+    return effects
 
 
 def _at_floor(single, chosen, stop_at) -> bool:
