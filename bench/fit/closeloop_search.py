@@ -393,8 +393,10 @@ def _rank(X: np.ndarray) -> int:
     return int(np.linalg.matrix_rank(X / np.where(scale > 0, scale, 1.0), tol=None))
 
 
-def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...]) -> dict[str, Any]:
-    """The three pieces of training evidence for adding ``added`` to ``base`` (giving ``new``)."""
+def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...],
+          with_gls: bool = True) -> dict[str, Any]:
+    """The pieces of training evidence for adding ``added`` to ``base`` (giving ``new``); without
+    ``with_gls`` (the backward pass, which judges redundancy on BIC alone) the GLS test is skipped."""
     rank_gain = new.rank - base.rank
     # the residual's own autocorrelation counts structure that other effects still have to explain as
     # if it were noise; the noise model's autocorrelation of 100-s means bounds n_eff from below
@@ -414,8 +416,9 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
     # the base design's residual), judged only for what passed the other gates.  The candidate is the
     # best of every family the step tried: its p is held to P_MAX / (number of families) (Bonferroni:
     # the chance that the best of m noise-only candidates passes stays below P_MAX)
-    p_gls = problem.gls_p(base.effects, X0, X) if dbic > DBIC_MIN and p < P_MAX and cv_ok else float("nan")
-    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok and p_gls < P_MAX / max(1, len(problem.families)))
+    judged = with_gls and dbic > DBIC_MIN and p < P_MAX and cv_ok
+    p_gls = problem.gls_p(base.effects, X0, X) if judged else float("nan")
+    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok and (not with_gls or p_gls < P_MAX / max(1, len(problem.families))))
     out = {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
            "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
     if np.isfinite(p_gls):
@@ -590,7 +593,7 @@ def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
         full = problem.score(current)
         for i, e in enumerate(current):
             others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
-            ev = gates(problem, problem.score(others), full, (e,))
+            ev = gates(problem, problem.score(others), full, (e,), with_gls=False)
             if _redundant(ev) and (weakest is None or ev["delta_bic"] < weakest[1]):
                 weakest = (i, ev["delta_bic"], others)
         if weakest is None:
