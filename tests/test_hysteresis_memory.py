@@ -74,21 +74,3 @@ def test_training_search_chooses_the_start_rule_and_width(form, start):
     best = min(fits, key=lambda k: fits[k][1])
     assert best == truth.label
     assert fits[best][0].value == pytest.approx(width, rel=0.1)
-
-
-def test_duhem_memory_moves_over_a_recording_outage_by_the_temperature_change():
-    # a 50-min logger outage in the middle of a 20 C ramp: the rate filter has no data there, the
-    # temperature moved 10 C; bridged by the measured temperatures, the memory follows the record
-    # without the outage (only where the rate filter is blind near the outage may it differ)
-    t = np.arange(0.0, 30000.0, FINE_S)
-    temp = np.interp(t, [0, 4000, 14000, 30000], [20, 20, 40, 10])
-    keep = ~((t > 6000) & (t < 9000))
-    full = fx.duhem_state(fx.rate_c_per_min(temp, t, 300.0), t, 4.0)[keep]
-    rate = fx.rate_c_per_min(temp[keep], t[keep], 300.0)
-    bridged = fx.duhem_state(rate, t[keep], 4.0, temp=temp[keep], blind_s=300.0)
-    unbridged = fx.duhem_state(rate, t[keep], 4.0)
-    assert np.max(np.abs(bridged - full)) < 0.05
-    assert np.max(np.abs(unbridged - full)) > 0.25
-    # without an outage the bridge changes nothing
-    np.testing.assert_array_equal(fx.duhem_state(fx.rate_c_per_min(temp, t, 300.0), t, 4.0, temp=temp, blind_s=300.0),
-                                  fx.duhem_state(fx.rate_c_per_min(temp, t, 300.0), t, 4.0))

@@ -77,7 +77,6 @@ class Inputs:
     power_known: bool
     up: np.ndarray | None                   # (n, 3) up component of the body axes x, y, z
     input_rate: np.ndarray | None           # deg/h along the channel (Earth + table)
-    rate_window_s: float = 300.0            # the filter window of ``rates`` (no rate within half of it of a gap)
 
     @property
     def dt(self) -> float:
@@ -115,7 +114,7 @@ class Inputs:
                       rates={k: c[f"R:{k}"] for k in self.rates}, since_on=c["since_on"],
                       power_known=self.power_known,
                       up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
-                      input_rate=c.get("w_in"), rate_window_s=self.rate_window_s)
+                      input_rate=c.get("w_in"))
 
 
 @dataclass(frozen=True)
@@ -259,48 +258,12 @@ def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
     return state
 
 
-def temperature_steps(rate_c_per_min_: np.ndarray, time_s: np.ndarray, temp: np.ndarray | None = None,
-                      blind_s: float = 0.0) -> np.ndarray:
-    """The temperature change of each step (C): the filtered rate times the step's own length.
-
-    Over a recording outage the filter has no data (its rate is 0 within ``blind_s`` of the outage's
-    edges and across it) while the temperature kept moving.  With the measured ``temp`` given, each
-    outage is bridged: from the last sample ``blind_s`` or more before it to the first ``blind_s`` or
-    more after it, the steps must add up to the measured temperature change between those samples;
-    what the rate missed is put on the outage's step (the net change: a turn inside the outage is
-    not recorded by anything)."""
-    t = np.asarray(time_s, dtype=np.float64)
-    steps = np.diff(t, prepend=t[0] - sample_period(t)) if len(t) else np.zeros(0)
-    dT = np.nan_to_num(np.asarray(rate_c_per_min_, dtype=np.float64)) * steps / 60.0
-    if temp is None or len(t) < 3:
-        return dT
-    # the rate filter interpolates over a gap shorter than half its window (``temperature_rate``)
-    gaps = np.flatnonzero(steps > max(1.5 * sample_period(t), blind_s / 2.0))
-    if not gaps.size:
-        return dT
-    x = _hold_missing(np.asarray(temp, dtype=np.float64))
-    spans: list[list[int]] = []
-    for g in gaps:
-        a = max(0, int(np.searchsorted(t, t[g - 1] - blind_s, side="right")) - 1)
-        b = min(len(t) - 1, int(np.searchsorted(t, t[g] + blind_s, side="left")))
-        if spans and a <= spans[-1][1]:
-            spans[-1][1] = max(spans[-1][1], b)
-            spans[-1][2] = g if steps[g] > steps[spans[-1][2]] else spans[-1][2]
-        else:
-            spans.append([a, b, int(g)])
-    for a, b, g in spans:
-        dT[g] += (x[b] - x[a]) - float(np.sum(dT[a + 1:b + 1]))
-    return dT
-
-
-def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float, start: float = 0.0,
-                temp: np.ndarray | None = None, blind_s: float = 0.0) -> np.ndarray:
+def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:
     """Gradual (Duhem) hysteresis memory m in [-1, 1] driven by the filtered temperature change
-    dT (``temperature_steps``: rate times each step's length, outages bridged by the measured
-    temperature when ``temp`` is given): m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width)
-    at each step, so it saturates after a one-way excursion of a few ``width_c`` and keeps its value
-    during soaks; it starts at ``start``."""
-    dT = temperature_steps(rate_c_per_min_, time_s, temp, blind_s)
+    dT = rate dt: m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width) at each step, so it
+    saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks; it
+    starts at ``start``."""
+    dT = np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0
     a = np.exp(-np.abs(dT) / width_c)
     return linear_recurrence(a, (1.0 - a) * np.sign(dT), float(start))
 
@@ -395,7 +358,7 @@ def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
         if "table_rate_dps" in ds:
             w_in = w_in + np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=np.float64)) * 3600.0
     return Inputs(time=t, temps=temps, rates=rates, since_on=time_since_power_on(ds),
-                  power_known="power" in ds, up=up, input_rate=w_in, rate_window_s=float(ctx.rate_window_s))
+                  power_known="power" in ds, up=up, input_rate=w_in)
 
 
 # --------------------------------------------------------------------------------------------
@@ -446,8 +409,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             for start in MEMORY_STARTS:
                 def gradual(x: Inputs, w, p=p, start=start):
                     m0 = memory_start(start, x.temps[p], w)
-                    return {f"duhem{w:.3g}({p},{start})": duhem_state(x.rates[p], x.time, w, m0, temp=x.temps[p],
-                                                                       blind_s=x.rate_window_s)}
+                    return {f"duhem{w:.3g}({p},{start})": duhem_state(x.rates[p], x.time, w, m0)}
                 fixed = (("probe", p), ("form", "gradual")) + ((("start", start),) if start != "neutral" else ())
                 out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
                                   limits=limits, variants=len(MEMORY_STARTS)))
