@@ -14,13 +14,9 @@ from tests.heldout.score import score_case
 
 #: (class, seed) -> why the product misses it today (measured with tests.heldout.score)
 KNOWN_MISSES: dict[tuple[str, int], str] = {
-    ("complete_inside", 3): "a complete model gets a relay hysteresis on t3 added (1 % validation gain) and the "
-                            "channel is called explained instead of no_effect_missing",
     ("gradual_hysteresis", 1): "right kind, probe and start (Duhem on t2, reversed start) but after 1.17x the "
                                "oracle and partly_explained (the structure tests still see correlated 100-s "
                                "means)",
-    ("unexplained_step", 1): "a bias step at a random time is partly absorbed by time_drift: partly_explained "
-                             "instead of unexplained_structure_remains",
 }
 
 SUBSET = [

@@ -149,3 +149,27 @@ def test_two_candidates_the_training_run_cannot_tell_apart_are_named_as_an_ambig
     names = {a["kind"] for a in ev["ambiguous_with"]}
     assert names == {"thermal_lag", "gradient"} - {chosen[0].kind}
     assert all(0 <= a["bic_margin"] < AMBIGUOUS_DBIC for a in ev["ambiguous_with"])
+
+
+def _drift_problem(y: np.ndarray, t: np.ndarray) -> SearchProblem:
+    fine = _inputs(t, np.full(len(t), 20.0))
+    drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
+    return _problem(fine, y, [drift])
+
+
+def test_a_bias_step_is_not_taken_for_a_time_drift():
+    from bench.fit.closeloop_search import search
+
+    rng = np.random.default_rng(11)
+    t = np.arange(5.0, 36_000.0, FINE_S)
+    noise = rng.normal(0, 0.02, len(t))
+    # one abrupt change at 6.1 h: a drift fits part of it, a step at the right time fits it all
+    chosen, steps = search(_drift_problem(0.05 * (t >= 22_000.0) + noise, t))
+    assert chosen == ()
+    found = [s["time_drift_is_a_step"] for s in steps if "time_drift_is_a_step" in s]
+    assert len(found) == 1 and abs(found[0]["step_at_s"] - 22_000.0) <= 200.0
+    assert found[0]["step_dph"] == pytest.approx(0.05, rel=0.1)
+    # a steady drift of the same overall size stays a drift
+    chosen, steps = search(_drift_problem(0.05 * t / 36_000.0 + noise, t))
+    assert [e.kind for e in chosen] == ["time_drift"]
+    assert not any("time_drift_is_a_step" in s for s in steps)

@@ -84,6 +84,10 @@ class SearchProblem:
     families: list[fx.Family]
     n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
     fine_valid: np.ndarray | None = None   # fine-grid rows where the target was measured
+    # the noise model (``noisefloor.NoiseModel``) of the full-rate training residual of a design with
+    # these effects: the null hypothesis of the GLS gate (None: no GLS gate)
+    noise_for: Callable[[tuple[fx.Effect, ...]], Any] | None = None
+    _whiteners: dict[tuple, np.ndarray] = field(default_factory=dict, repr=False)
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
@@ -116,6 +120,30 @@ class SearchProblem:
         return np.column_stack([self.Xb] + [self.columns(e) for e in effects])
 
     # ---------------------------------------------------------------- fits
+    def block_index(self) -> np.ndarray:
+        """Each evidence block's number from the run's start (an outage keeps its lag)."""
+        if self._plan is None:
+            self._plan = BlockPlan(self.fine.time, BLOCK_S)
+        tb = self._plan.time_s
+        return np.round((tb - tb[0]) / BLOCK_S)
+
+    def gls_p(self, base: tuple[fx.Effect, ...], X0: np.ndarray, X1: np.ndarray) -> float:
+        """p of the GLS F test (``noisefloor.gls_f_test``) for the columns X1 adds to X0, under the
+        noise model of the base design's training residual; 0 when there is no noise model."""
+        from bench.fit.noisefloor import block_covariance, gls_f_test, gls_whitener
+
+        if self.noise_for is None:
+            return 0.0
+        ok = self.rows & np.all(np.isfinite(X1), axis=1)
+        key = (tuple(e.label for e in base), ok.tobytes())
+        W = self._whiteners.get(key)
+        if W is None:
+            model = self.noise_for(base)
+            if len(self._whiteners) > 32:
+                self._whiteners.clear()
+            W = self._whiteners[key] = gls_whitener(block_covariance(model, self.block_index()[ok]))
+        return gls_f_test(W, X0[ok], X1[ok], self.yb[ok])[1]
+
     def ssr(self, effects: tuple[fx.Effect, ...]) -> float:
         if effects:
             got = self.projector(effects[:-1]).ssr_with(self.columns(effects[-1]))
@@ -365,8 +393,10 @@ def _rank(X: np.ndarray) -> int:
     return int(np.linalg.matrix_rank(X / np.where(scale > 0, scale, 1.0), tol=None))
 
 
-def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...]) -> dict[str, Any]:
-    """The three pieces of training evidence for adding ``added`` to ``base`` (giving ``new``)."""
+def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Effect, ...],
+          with_gls: bool = True) -> dict[str, Any]:
+    """The pieces of training evidence for adding ``added`` to ``base`` (giving ``new``); without
+    ``with_gls`` (the backward pass, which judges redundancy on BIC alone) the GLS test is skipped."""
     rank_gain = new.rank - base.rank
     # the residual's own autocorrelation counts structure that other effects still have to explain as
     # if it were noise; the noise model's autocorrelation of 100-s means bounds n_eff from below
@@ -379,11 +409,20 @@ def gates(problem: SearchProblem, base: Scored, new: Scored, added: tuple[fx.Eff
     X = problem.design(new.effects)
     k0 = problem.design(base.effects).shape[1]
     p = hac_wald_p(X[problem.rows], problem.yb[problem.rows], list(range(k0, X.shape[1]))) if dbic > DBIC_MIN else 1.0
-    cv_gain, cv_note = problem.cv_gain(problem.design(base.effects), X)
+    X0 = problem.design(base.effects)
+    cv_gain, cv_note = problem.cv_gain(X0, X)
     cv_ok = (not np.isfinite(cv_gain)) or cv_gain >= MIN_CV_GAIN
-    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok)
+    # the GLS F test under the noise model's own covariance of block means (white and flicker terms of
+    # the base design's residual), judged only for what passed the other gates.  The candidate is the
+    # best of every family the step tried: its p is held to P_MAX / (number of families) (Bonferroni:
+    # the chance that the best of m noise-only candidates passes stays below P_MAX)
+    judged = with_gls and dbic > DBIC_MIN and p < P_MAX and cv_ok
+    p_gls = problem.gls_p(base.effects, X0, X) if judged else float("nan")
+    passed = bool(dbic > DBIC_MIN and p < P_MAX and cv_ok and (not with_gls or p_gls < P_MAX / max(1, len(problem.families))))
     out = {"delta_bic": float(dbic), "hac_wald_p": float(p), "cv_gain": float(cv_gain), "n_blocks": new.n,
            "n_eff": float(n_eff), "block_s": BLOCK_S, "cv_folds": len(problem.folds()), "passed": passed}
+    if np.isfinite(p_gls):
+        out["gls_f_p"] = float(p_gls)
     if cv_note:
         out["cv_not_applicable"] = cv_note
     return out
@@ -478,7 +517,58 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
                       "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
-    return prune(problem, chosen, steps), steps
+    chosen = prune(problem, chosen, steps)
+    return drop_drift_that_is_a_step(problem, chosen, steps), steps
+
+
+# the change point of a bias step is looked for away from the run's ends (a step in the first or last
+# few blocks is a level difference of a handful of points, which any slow term also fits)
+STEP_EDGE_BLOCKS = 5
+
+
+def drop_drift_that_is_a_step(problem: SearchProblem, effects: tuple[fx.Effect, ...],
+                              steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
+    """A time drift kept to describe what is in fact one abrupt change.  ``time_drift`` is a steady
+    change with time (ageing); a bias step at one instant (a mode hop, a shock, a connector) is not
+    driven by anything recorded, so it is no library effect.  A step (one column, 0 before and 1
+    after; its time searched over every evidence block away from the ends and charged as a searched
+    parameter) is fitted in the drift's place with the other effects held; when it beats the drift by
+    more than ``DBIC_MIN`` in BIC (strong evidence, the search's own bar) the time structure is a
+    step: the drift is left out and the step is reported as structure no recorded input explains."""
+    drift = [i for i, e in enumerate(effects) if e.kind == "time_drift"]
+    if not drift:
+        return effects
+    if problem._plan is None:
+        problem._plan = BlockPlan(problem.fine.time, BLOCK_S)
+    tb = problem._plan.time_s
+    if len(tb) < 4 * STEP_EDGE_BLOCKS:
+        return effects
+    i = drift[0]
+    others = effects[:i] + effects[i + 1:]
+    n_eff = problem.score(effects, with_cv=False).n_eff
+    proj = problem.projector(others)
+    t = problem.fine.time
+    valid = problem.fine_valid if problem.fine_valid is not None else np.ones(len(t), dtype=bool)
+    best = (np.inf, 0.0, None)
+    for t0 in tb[STEP_EDGE_BLOCKS:-STEP_EDGE_BLOCKS]:
+        col = problem._plan.means(np.where(valid, (t >= t0).astype(float), np.nan))[:, None]
+        got = proj.ssr_with(col)
+        if got is not None and got < best[0]:
+            best = (got, float(t0), col)
+    if best[2] is None:
+        return effects
+    b_drift = problem.bic(effects, n_eff)
+    # the others' columns and parameters are charged alike; the step pays one column and its time
+    charged_others = problem.bic(others, n_eff) - n_eff * np.log(max(problem.ssr(others), 1e-300))
+    b_step = n_eff * np.log(max(best[0], 1e-300)) + charged_others + 2.0 * np.log(n_eff)
+    if b_step < b_drift - DBIC_MIN:
+        X = np.column_stack([problem.design(others), best[2]])
+        ok = problem.rows & np.all(np.isfinite(X), axis=1)
+        size = float(_lstsq(X[ok], problem.yb[ok])[-1])
+        steps.append({"time_drift_is_a_step": {"step_at_s": float(best[1] - t[0]), "step_dph": size,
+                                               "bic_margin_over_drift": float(b_drift - b_step)}})
+        return others
+    return effects
 
 
 def _at_floor(single, chosen, stop_at) -> bool:
@@ -503,7 +593,7 @@ def prune(problem: SearchProblem, effects: tuple[fx.Effect, ...],
         full = problem.score(current)
         for i, e in enumerate(current):
             others = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
-            ev = gates(problem, problem.score(others), full, (e,))
+            ev = gates(problem, problem.score(others), full, (e,), with_gls=False)
             if _redundant(ev) and (weakest is None or ev["delta_bic"] < weakest[1]):
                 weakest = (i, ev["delta_bic"], others)
         if weakest is None:

@@ -50,6 +50,7 @@ MUS = (-2.0, -1.0, 0.0, 1.0, 2.0)     # Allan-variance exponents fitted
 NOISE_MUS = (-2.0, -1.0, 0.0)          # those that make the floor (tau^1 and tau^2: nuisance terms)
 WHITE_MUS = (-2.0, -1.0)
 TAU_MAX_S = 1100.0
+PIECE_TAUS = 8.0       # a stretch of L seconds gives Allan variances up to tau = L / PIECE_TAUS
 INTERVAL = 0.90
 LIMIT_P = 0.01
 
@@ -177,12 +178,7 @@ def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index:
     V = V[np.all(np.isfinite(V), axis=1)]
     if len(X) <= X.shape[1] or len(V) < 2:
         return CoefficientSpread(0.0, 1.0)
-    lags = np.abs(idx[:, None] - idx[None, :])
-    g = np.zeros(lags.shape)
-    for mu in NOISE_MUS:
-        avar = model.coef.get(mu, 0.0) * block_s ** mu
-        if avar > 0:
-            g -= avar * _structure_ratio(lags, mu)
+    g = block_covariance(model, idx, block_s)
     scale = np.sqrt(np.mean(X ** 2, axis=0))
     scale[~(scale > 0)] = 1.0
     B = np.linalg.pinv(X / scale) / scale[:, None]
@@ -194,6 +190,67 @@ def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index:
     if not (e > 0 and e2 > 0):
         return CoefficientSpread(0.0, 1.0)
     return CoefficientSpread(e, max(1.0, e * e / e2))
+
+
+def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float = BLOCK_S) -> np.ndarray:
+    """The generalised covariance G of block means under the fitted noise terms (``NOISE_MUS``):
+    g(|i-j|) = -D(|i-j|) / 2 from each power law's structure function, D(1) = 2 AVAR(block_s), at
+    the blocks' numbers ``block_index`` (an outage keeps its lag).  Defined up to a constant: only
+    contrasts (a design with an intercept) have a variance under it; flicker has no finite one."""
+    idx = np.rint(np.asarray(block_index, dtype=np.float64)).astype(np.int64)
+    lags = np.abs(idx[:, None] - idx[None, :])
+    per_lag = np.zeros(int(lags.max()) + 1 if lags.size else 0)
+    for mu in NOISE_MUS:
+        avar = model.coef.get(mu, 0.0) * block_s ** mu
+        if avar > 0:
+            per_lag -= avar * _structure_ratio(np.arange(len(per_lag)), mu)
+    return per_lag[lags]
+
+
+def gls_whitener(g: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factor L of a proper covariance with the contrasts of the generalised covariance
+    ``g`` (g + c 11', c = 2 max|g|: nonnegative, convex and decreasing in the lag, hence positive
+    definite by Polya's criterion).  A design with an intercept gets the same generalised least
+    squares fit and residual sum of squares for any such c (the added part lies in the intercept's
+    direction), so solving with L whitens the block means under the noise model."""
+    from scipy.linalg import cholesky
+
+    n = len(g)
+    c = 2.0 * float(np.max(np.abs(g))) if n else 0.0
+    if not c > 0:
+        return np.eye(n)
+    return cholesky(g + c, lower=True)
+
+
+def gls_f_test(L: np.ndarray, X0: np.ndarray, X1: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """F test that the columns X1 adds to X0 are zero, by generalised least squares with the noise
+    model's covariance of block means (``gls_whitener``: L; an intercept is added to both designs),
+    its scale estimated from the residual (so structure left by other missing terms makes the test
+    conservative, not liberal).  Autocorrelation of any shape the noise model describes (white,
+    flicker) is accounted for, where a lag-1 or Newey-West correction under-prices slow regressors
+    against 1/f noise.  Returns (F, p)."""
+    from scipy.linalg import solve_triangular
+    from scipy.stats import f as f_dist
+
+    one = np.ones((len(y), 1))
+    A = solve_triangular(L, np.column_stack([y, one, X0, X1[:, X0.shape[1]:]]), lower=True, check_finite=False)
+    yw, k0 = A[:, 0], 1 + X0.shape[1]
+
+    def ssr_rank(B: np.ndarray) -> tuple[float, int]:
+        sc = np.sqrt(np.mean(B ** 2, axis=0))
+        sc[~(sc > 0)] = 1.0
+        u, sv, _ = np.linalg.svd(B / sc, full_matrices=False)
+        q = u[:, sv > (sv[0] if len(sv) else 0.0) * 1e-10]
+        r = yw - q @ (q.T @ yw)
+        return float(r @ r), q.shape[1]
+
+    s0, r0 = ssr_rank(A[:, 1:1 + k0])
+    s1, r1 = ssr_rank(A[:, 1:])
+    q, dof = r1 - r0, len(yw) - r1
+    if q <= 0 or dof <= 0 or s1 <= 0:
+        return 0.0, 1.0
+    stat = max(s0 - s1, 0.0) / q / (s1 / dof)
+    return float(stat), float(f_dist.sf(stat, q, dof))
 
 
 def _oadev_octave(x: np.ndarray, dt: float, tau_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -235,7 +292,7 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         for piece in contiguous_pieces(x, dt, t):
             if len(piece) < 16:
                 continue
-            tmax = min(tau_max_s, len(piece) * dt / 8.0)
+            tmax = min(tau_max_s, len(piece) * dt / PIECE_TAUS)
             taus, avar, n = _oadev_octave(piece, dt, tmax)
             for tau, v, k in zip(taus, avar, n):
                 key = round(float(tau), 6)
