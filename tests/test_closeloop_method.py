@@ -3,6 +3,8 @@ refinement beyond the scan grid, the noise floor's degrees of freedom under flic
 cross-validation entry of the report when blocked cross-validation cannot judge an effect."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.stats import chi2
@@ -173,3 +175,18 @@ def test_a_bias_step_is_not_taken_for_a_time_drift():
     chosen, steps = search(_drift_problem(0.05 * t / 36_000.0 + noise, t))
     assert [e.kind for e in chosen] == ["time_drift"]
     assert not any("time_drift_is_a_step" in s for s in steps)
+
+
+def test_no_scale_factor_term_when_the_input_rate_never_changes():
+    # one static position: the Earth rate along the channel, recomputed per sample, is one value up to
+    # rounding; w_in * (T - 25) is then a plain temperature term, not a scale factor
+    t = np.arange(0.0, 20000.0, 1.0)
+    temp = 20.0 + 15.0 * np.sin(t / 3000.0)
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=48.1)
+    earth = np.full(len(t), 10.044915307032468) * np.cos(np.zeros(len(t)))   # one value, rounding aside
+    earth[::7] += 1.8e-15
+    assert np.nanstd(earth) > 0
+    static = replace(_inputs(t, temp), input_rate=earth)
+    assert not any(f.kind == "scale_factor_temperature" for f in fx.families(ctx, static))
+    turning = replace(_inputs(t, temp), input_rate=earth + 3600.0 * np.where(t > 10000.0, 2.0, 0.0))
+    assert any(f.kind == "scale_factor_temperature" for f in fx.families(ctx, turning))

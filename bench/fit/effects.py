@@ -342,6 +342,14 @@ def body_axes_enu(orientation: np.ndarray) -> np.ndarray:
     return orientation_axes_per_sample(np.asarray(orientation, dtype=object))
 
 
+def _varies(x: np.ndarray) -> bool:
+    """True when ``x`` takes more than one value beyond floating-point rounding of its magnitude."""
+    v = x[np.isfinite(x)]
+    if len(v) < 2:
+        return False
+    return float(np.ptp(v)) > 1e-9 * max(1.0, float(np.max(np.abs(v))))
+
+
 def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
     """The inputs of every effect, at the run's own rate."""
     t = np.asarray(ds.time, dtype=np.float64)
@@ -431,7 +439,11 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     if inputs.up is not None:
         out.append(Family("g_sensitivity", (), lambda x, _v: {f"g_{ax}": x.up[:, i] for i, ax in enumerate("xyz")}))
 
-    if inputs.input_rate is not None and np.nanstd(inputs.input_rate) > 0:
+    # the scale factor's temperature term is told apart from the bias's own temperature terms only by
+    # the input rate changing; a constant input rate (one static position: the Earth rate alone) makes
+    # its column a constant times (T - 25), a plain temperature term.  "Changing" is judged against the
+    # rate's own size: the same Earth rate recomputed per sample differs from its mean by rounding only
+    if inputs.input_rate is not None and _varies(inputs.input_rate):
         p = ctx.primary_probe
         out.append(Family("scale_factor_temperature", (("probe", p),),
                           lambda x, _v: {f"w_in*({p}-25)": x.input_rate * (x.temps[p] - T0_C)}))
