@@ -234,8 +234,10 @@ class LockstepClock:
     def _pace(self, bench_s: float) -> None:
         if self.pace is None:
             return
+        # the next instant is due one step after this one; only the time the host fell behind that
+        # instant by more than BURST_WALL_S is forgotten (the work done at an instant is not lateness)
         wall = time.monotonic()
-        self._wall_mark = max(self._wall_mark, wall - self.BURST_WALL_S) + bench_s / self.pace
+        self._wall_mark = max(self._wall_mark + bench_s / self.pace, wall - self.BURST_WALL_S)
         if self._wall_mark > wall:
             time.sleep(self._wall_mark - wall)
 

@@ -82,3 +82,48 @@ def test_parse_speed():
     for bad in ("0", "-3", "fast", "inf"):
         with pytest.raises(ValueError, match="--speed"):
             parse_speed(bad)
+
+
+def test_work_done_at_an_instant_is_not_lost_pace(monkeypatch):
+    """At x1 with 2-s instants whose serving takes 0.6 s of wall (more than the catching-up
+    allowance), the clock still keeps x1: the next instant is due one step after this one's due
+    time, not one step after its work ended.  A fake wall clock makes this exact."""
+    import bench.clock as bc
+
+    wall = [100.0]
+    monkeypatch.setattr(bc.time, "monotonic", lambda: wall[0])
+    monkeypatch.setattr(bc.time, "sleep", lambda s: wall.__setitem__(0, wall[0] + s))
+    clock = LockstepClock(T0, 1.0)
+
+    def busy(t):
+        wall[0] += 0.6                               # the serving work at this instant
+        return {}
+
+    clock.serve("gyro", busy)
+    w0 = wall[0]
+    for _ in range(30):
+        clock.sleep(2.0)
+    assert wall[0] - w0 == pytest.approx(60.0 + 0.6, abs=1e-6)     # was 30 x 2.35 s: x0.85
+
+
+def test_a_stall_longer_than_the_allowance_is_forgotten(monkeypatch):
+    """After a 10-s stall the clock does not race to make it up: two instants k steps apart are
+    served at least k steps - BURST_WALL_S of wall apart."""
+    import bench.clock as bc
+
+    wall = [100.0]
+    monkeypatch.setattr(bc.time, "monotonic", lambda: wall[0])
+    monkeypatch.setattr(bc.time, "sleep", lambda s: wall.__setitem__(0, wall[0] + s))
+    clock = LockstepClock(T0, 1.0)
+    served: list[float] = []
+    clock.serve("probe", lambda t: served.append(wall[0]) or {})
+    clock.sleep(1.0)
+    wall[0] += 10.0                                  # the host stalled 10 s
+    for _ in range(5):
+        clock.sleep(1.0)
+    after = served[1:]                               # the instants after the stall
+    assert after[0] == pytest.approx(111.0)          # the late instant is served at once
+    for j in range(len(after)):
+        for k in range(j + 1, len(after)):
+            assert after[k] - after[j] >= (k - j) - LockstepClock.BURST_WALL_S - 1e-9
+    assert after[-1] - after[0] == pytest.approx(4.0 - LockstepClock.BURST_WALL_S)
