@@ -67,6 +67,10 @@ def test_full_run_records_labelled_data_and_ends_in_safe_state():
     assert bench.thermal.setpoint == 25.0
     assert bench.table.pos == {1: 0.0, 2: 0.0} and bench.table.target == {1: 0.0, 2: 0.0}
     assert not bench.psu.on
+    # the run's latest telemetry is the bench as the safe state left it: supply off, table parked
+    final = run.telemetry[-1][1]
+    assert final["psu"] is not None and not final["psu"].on
+    assert all(abs(a.position_deg) < 0.01 and a.rate_dps == 0.0 for a in final["turntable"].values())
     kinds = [e["kind"] for e in run.events]
     assert {"safe_chamber", "safe_table", "safe_power"} <= set(kinds)
     assert run.status == "completed" and run.checkpoint["finished"] == "completed"

@@ -478,6 +478,10 @@ class Engine:
         except DeviceError as exc:
             self.log("error", "link_stop_failed", f"gyro link stop failed: {exc}")
         now = self.clock.now()
+        try:
+            self.acq.final_reading(now)
+        except Exception as exc:  # noqa: BLE001 - the run still ends and records how
+            self.log("warning", "final_reading_failed", f"could not read the bench after the safe state: {exc}")
         self._checkpoint(now, self.current_index, None, finished=status)
         if self.fixture is not None:
             reason = self.fixture.finish(status, now, reason)

@@ -134,6 +134,11 @@ class FixtureAcquisition:
         for unit in self.units:
             unit.acq.flush(now)
 
+    def final_reading(self, now: float) -> None:
+        """The chamber, table and every unit's supply once more after the safe state (see
+        ``Acquisition.final_reading``)."""
+        self._read_telemetry(now, True, True)
+
     def _read_telemetry(self, now: float, chamber: bool, table_psu: bool) -> None:
         """The chamber (every ``telemetry_period_s``) and the table (every ``table_psu_period_s``) once,
         to the parent and every unit's run; each unit's supply on the table's schedule."""

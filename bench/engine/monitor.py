@@ -202,6 +202,11 @@ class Acquisition:
         psu_reading = self.read_psu(now) if table_psu else None
         self.record_telemetry(now, status, table, psu_reading)
 
+    def final_reading(self, now: float) -> None:
+        """The chamber, table and supply once more after the safe state, so the run's latest telemetry
+        is the state the bench was left in (supply off, table parked), not the last reading before it."""
+        self.read_telemetry(now)
+
     def read_table(self, now: float) -> dict[int, AxisState] | None:
         table: dict[int, AxisState] | None = {}
         try:
