@@ -14,7 +14,7 @@ import numpy as np
 
 from tests.referee4.cases import (Case, block_index, block_means, declared_inputs,
                                   declared_regressors)
-from tests.referee4.effects import Signals, centred_slope, regressor
+from tests.referee4.effects import RATE_WINDOW_S, Signals, centred_slope, regressor
 
 BLOCK_S = 100.0
 
@@ -24,6 +24,7 @@ def recorded_signals(cols: dict[str, np.ndarray], *, interpolate: bool) -> Signa
     reads it): a failed conversion stays missing and rates are slopes over the present readings only;
     ``interpolate=True`` (the oracle's true effects): temperatures interpolated over the failures."""
     t = cols["time_s"]
+    near_outage = _near_outage(t, RATE_WINDOW_S / 2)
     temps, rates = {}, {}
     for name, v in cols.items():
         if not name.startswith("temp_"):
@@ -35,6 +36,7 @@ def recorded_signals(cols: dict[str, np.ndarray], *, interpolate: bool) -> Signa
         else:
             r = np.full(t.size, np.nan)
             r[ok] = centred_slope(t[ok], v[ok])
+            r[near_outage] = np.nan
             temps[name[5:]], rates[name[5:]] = v, r
     p = cols["power"]
     edges = np.flatnonzero((p[1:] > 0.5) & (p[:-1] < 0.5)) + 1
@@ -42,6 +44,18 @@ def recorded_signals(cols: dict[str, np.ndarray], *, interpolate: bool) -> Signa
     if p[0] > 0.5:
         ons.insert(0, float(t[0]))
     return Signals(t=t, temps=temps, rates=rates, power_on_s=ons)
+
+
+def _near_outage(t: np.ndarray, half_window_s: float) -> np.ndarray:
+    """Rows less than half a rate window minus one sample period from a logger outage (a time step
+    over 1.5 sample periods): the product's rate is undefined there (its fit skips them, its
+    in-range test fails them; the exact reach was matched on this referee's cases)."""
+    dt = float(np.median(np.diff(t)))
+    near = np.zeros(t.size, dtype=bool)
+    for i in np.flatnonzero(np.diff(t) > 1.5 * dt):
+        reach = half_window_s - dt
+        near |= ((t <= t[i]) & (t > t[i] - reach)) | ((t >= t[i + 1]) & (t < t[i + 1] + reach))
+    return near
 
 
 @dataclass
@@ -63,43 +77,52 @@ def _design(case: Case, ch: str, cols: dict, with_truth: bool) -> np.ndarray:
     return np.column_stack(parts)
 
 
-def _in_range_blocks(case: Case, ch: str, sig_t: Signals, sig_v: Signals,
-                     idx: np.ndarray, rows_train: np.ndarray, rows_val: np.ndarray) -> set[int]:
-    """Blocks whose every measured row has its declared inputs recorded (a failed conversion is not
-    in range: the product drops the block for one missing probe reading) and inside their training
-    range."""
+def _in_range_rows(case: Case, ch: str, sig_t: Signals, sig_v: Signals, rows_train: np.ndarray,
+                   measured: np.ndarray) -> np.ndarray:
+    """Measured validation rows that count as in range.  As the product does it (found by feeding it
+    crafted runs): the range test runs on 100-s blocks counted from the run's first row; a block in
+    which any measured row has a declared input outside its training range, or missing (a failed
+    conversion), is dropped whole."""
     probe = case.truth[ch]["probe"]
     ins_t = declared_inputs(case.model, sig_t, probe)
     ins_v = declared_inputs(case.model, sig_v, probe)
-    ok = np.ones(rows_val.sum(), dtype=bool)
+    ok = np.ones(sig_v.t.size, dtype=bool)
     for k in ins_t:
         lo, hi = np.min(ins_t[k][rows_train]), np.max(ins_t[k][rows_train])
-        v = ins_v[k][rows_val]
-        ok &= (v >= lo) & (v <= hi)
-    bad = set(np.unique(idx[~ok]).tolist())
-    return set(np.unique(idx).tolist()) - bad
+        ok &= (ins_v[k] >= lo) & (ins_v[k] <= hi)
+    grid = block_index(sig_v.t, sig_v.t[0], BLOCK_S)
+    bad = np.unique(grid[measured & ~ok])
+    return measured & ~np.isin(grid, bad)
 
 
 def channel_score(case: Case, ch: str) -> ChannelScore:
+    """Before and oracle on the validation run: std (ddof 1) of the 100-s means over the in-range
+    rows, blocks counted from the first in-range row, only blocks holding at least half their samples
+    (the product's blocking, matched on crafted runs and on this referee's cases)."""
     ct, cv = case.columns["train"], case.columns["validate"]
     sig_t = recorded_signals(ct, interpolate=False)
     sig_v = recorded_signals(cv, interpolate=False)
     yt, yv = ct[f"gyro_{ch}"], cv[f"gyro_{ch}"]
+    tv = cv["time_s"]
+    measured = np.isfinite(yv)
+    per_block = BLOCK_S / float(np.median(np.diff(tv)))
     out = {}
     for label, truth in (("before", False), ("oracle", True)):
         xt, xv = _design(case, ch, ct, truth), _design(case, ch, cv, truth)
         rt = np.isfinite(yt) & np.all(np.isfinite(xt), axis=1)
-        rv = np.isfinite(yv) & np.all(np.isfinite(xv), axis=1)
-        gv = np.isfinite(yv)
-        idx = block_index(cv["time_s"][gv], cv["time_s"][gv][0], BLOCK_S)   # from the first measured sample
-        good = _in_range_blocks(case, ch, sig_t, sig_v, idx, rt, gv)
+        use = _in_range_rows(case, ch, sig_t, sig_v, rt, measured) & np.all(np.isfinite(xv), axis=1)
+        if not use.any():
+            out[label], out["n"] = float("nan"), (0, 0)
+            continue
+        idx = block_index(tv, tv[use][0], BLOCK_S)
         scale = np.max(np.abs(xt[rt]), axis=0)
         scale[scale == 0] = 1.0
         coef, *_ = np.linalg.lstsq(xt[rt] / scale, yt[rt], rcond=None)
-        res = np.where(rv, yv - (np.nan_to_num(xv) / scale) @ coef, np.nan)[gv]
-        blocks, means = block_means(idx, res)
-        sel = np.isin(blocks, list(good))
+        res = yv[use] - (xv[use] / scale) @ coef
+        blocks, means = block_means(idx[use], res)
+        counts = np.array([np.sum(idx[use] == b) for b in blocks])
+        sel = counts >= 0.5 * per_block
         out[label] = float(np.std(means[sel, 0], ddof=1)) if sel.sum() > 2 else float("nan")
-        out["n"] = (int(sel.sum()), int(np.unique(idx).size))
+        out["n"] = (int(sel.sum()), int(np.unique(block_index(tv[measured], tv[measured][0], BLOCK_S)).size))
     return ChannelScore(before_std100=out["before"], oracle_std100=out["oracle"],
                         in_range_blocks=out["n"][0], blocks=out["n"][1])

@@ -164,12 +164,18 @@ def score_channel(case: Case, ch: str, report: dict) -> ChannelResult:
     return res
 
 
-def score_case(cls: str, seed: int, keep: Path | None = None) -> dict:
+def score_case(cls: str, seed: int, keep: Path | None = None, reuse: Path | None = None) -> dict:
+    """Build the case, run the product on it (or read the report kept by an earlier run of the same
+    code from ``reuse``), score every channel."""
     t0 = time.process_time()
     case = build_case(cls, seed)
     gen_cpu = time.process_time() - t0
-    with tempfile.TemporaryDirectory() as d:
-        report, prod_cpu = run_product(case, Path(d))
+    kept = reuse / f"{cls}-{seed}.json" if reuse is not None else None
+    if kept is not None and kept.exists():
+        report, prod_cpu = json.loads(kept.read_text()), 0.0
+    else:
+        with tempfile.TemporaryDirectory() as d:
+            report, prod_cpu = run_product(case, Path(d))
     if keep is not None:
         keep.mkdir(parents=True, exist_ok=True)
         (keep / f"{cls}-{seed}.json").write_text(json.dumps(report, indent=1))
@@ -191,6 +197,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", default="", help="write every result here")
     ap.add_argument("--verbose", action="store_true")
     ap.add_argument("--keep", default="", help="keep each product report JSON in this directory")
+    ap.add_argument("--reuse", default="", help="re-score the reports kept in this directory (same product "
+                                                "code); cases without one are run")
     args = ap.parse_args(argv)
     classes = [c for c in args.classes.split(",") if c] or list(CLASSES)
     unknown = [c for c in classes if c not in CLASSES]
@@ -199,7 +207,8 @@ def main(argv=None) -> int:
     results = []
     for cls in classes:
         for seed in range(args.first_seed, args.first_seed + args.seeds):
-            r = score_case(cls, seed, Path(args.keep) if args.keep else None)
+            r = score_case(cls, seed, Path(args.keep) if args.keep else None,
+                           Path(args.reuse) if args.reuse else None)
             results.append(r)
             status = "pass" if r["ok"] else "FAIL"
             print(f"{cls:34s} seed {seed:3d} {status}  ({r['logger']}, {r['styles']['train']}/"
