@@ -1,0 +1,104 @@
+"""The fourth close-the-loop referee: checks of its generator, and three cases scored through the CLI.
+
+The full measurement is ``python -m tests.referee4.score --seeds 5 --first-seed 1``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.fit.csvio import parse_csv_text
+from tests.referee4.cases import build_case
+from tests.referee4.effects import lag_irregular, play_operator, reversal_trigger
+from tests.referee4.oracle import channel_score
+from tests.referee4.physics import (NoiseSpec, allan_deviation, flicker_noise, gyro_noise,
+                                    quantise_output)
+from tests.referee4.score import score_case
+
+
+def test_white_noise_gives_its_angle_random_walk():
+    spec = NoiseSpec(arw_dps_rth=0.005, bias_inst_dph=0.0, rrw_dph_rth=0.0, quant_arcsec=0.0)
+    y = gyro_noise(200_000, 1.0, spec, np.random.default_rng(1))
+    adev = allan_deviation(y, 1.0, [1.0, 100.0])
+    assert adev[0] == pytest.approx(0.005 * 60.0, rel=0.02)          # N / sqrt(tau in h) at 1 s
+    assert adev[1] == pytest.approx(0.005 * 6.0, rel=0.08)           # and at 100 s
+
+
+def test_flicker_noise_sits_at_0664_b():
+    b = 0.004
+    y = flicker_noise(400_000, 1.0, b, np.random.default_rng(2))
+    adev = allan_deviation(y, 1.0, [30.0, 100.0, 300.0])
+    assert np.all(np.abs(adev / (0.664 * b) - 1) < 0.15), adev / (0.664 * b)
+
+
+def test_rate_random_walk_grows_as_k_sqrt_tau_over_3():
+    k = 0.002                                                        # deg/h/sqrt(h)
+    spec = NoiseSpec(arw_dps_rth=0.0, bias_inst_dph=0.0, rrw_dph_rth=k, quant_arcsec=0.0)
+    vals = [allan_deviation(gyro_noise(100_000, 1.0, spec, np.random.default_rng(s)), 1.0, [1000.0])[0]
+            for s in range(4)]
+    assert np.mean(vals) == pytest.approx(k / 60.0 * np.sqrt(1000.0 / 3.0), rel=0.25)
+
+
+def test_angle_quantisation_never_accumulates():
+    rate = np.full(10_000, 3.7)                                      # deg/h
+    out = quantise_output(rate, 1.0, 1.0, np.random.default_rng(3))
+    assert len(np.unique(out)) > 1                                  # it is quantised per sample...
+    assert abs(out.mean() - 3.7) * 10_000 / 3600 < 1.0 / 3600 + 1e-12  # ...but the angle is exact to Q
+
+
+def test_memory_operators():
+    x = np.concatenate([np.linspace(0, 10, 101), np.linspace(10, 0, 101)])
+    play = play_operator(x, 2.0)
+    assert play[50] == pytest.approx(-1.0) and play[-1] == pytest.approx(1.0)
+    rev = reversal_trigger(x, 1.0)
+    assert rev[50] == 1.0 and rev[-1] == -1.0 and rev[101 + 5] == 1.0   # flips only after 1 C back
+    t = np.arange(0.0, 5000.0)
+    lagged = lag_irregular(t, np.where(t > 100, 1.0, 0.0), 600.0)
+    assert lagged[700] == pytest.approx(1 - np.exp(-599.5 / 600.0), rel=0.01)
+
+
+def test_seeding_is_deterministic():
+    a, b = build_case("lag_other_probe", 3), build_case("lag_other_probe", 3)
+    assert a.texts == b.texts and a.truth == b.truth
+    c = build_case("lag_other_probe", 4)
+    assert c.texts["train"] != a.texts["train"]
+
+
+@pytest.mark.parametrize("cls,seed", [("two_effects", 2), ("complete_gradient_flicker", 1)])
+def test_csv_reads_back_through_the_product_reader(cls, seed):
+    case = build_case(cls, seed)
+    for run in ("train", "validate"):
+        ds = parse_csv_text(case.texts[run], source=run)
+        cols = case.columns[run]
+        assert ds.meta["channel_probes"] == {"x": "t1", "y": "t2", "z": "t3"}
+        for name, ours in cols.items():
+            theirs = np.asarray(ds.columns[name], dtype=float)
+            assert np.array_equal(np.isnan(theirs), np.isnan(ours)), name
+            ok = ~np.isnan(ours)
+            assert np.allclose(theirs[ok], ours[ok], atol=1e-4 if name.startswith("gyro_") else 0.06), name
+
+
+def test_oracle_reaches_the_noise_and_the_declared_model_does_not():
+    case = build_case("gradient_pair", 2)
+    for ch, tr in case.truth.items():
+        s = channel_score(case, ch)
+        assert s.oracle_std100 < 1.5 * case.noise_std100_dph, (ch, s, case.noise_std100_dph)
+        if tr["effects"]:
+            assert s.before_std100 > 3 * s.oracle_std100, (ch, s)
+
+
+# scored through `bench close-loop` (its JSON only); seeds from the first scoring round
+SCORED = [
+    pytest.param("temp_rate_cross", 1, id="temp_rate_cross-1"),
+    pytest.param("time_drift", 1, id="time_drift-1"),
+    pytest.param("lag_other_probe", 1, id="lag_other_probe-1", marks=pytest.mark.xfail(
+        strict=True, reason="a lag of t1 on y and z is named on the channels' own probes (t2, t3): "
+                            "after 9.9x / 1.35x the oracle, verdict partly_explained (measured at a622cc2)")),
+]
+
+
+@pytest.mark.parametrize("cls,seed", SCORED)
+def test_scored_case(cls, seed):
+    r = score_case(cls, seed)
+    failures = {c["channel"]: c["failures"] for c in r["channels"] if c["failures"]}
+    assert r["ok"], failures
