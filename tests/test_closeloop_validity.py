@@ -58,6 +58,29 @@ def test_in_range_mask_and_errors_are_plain_functions():
     assert e["validation_std100_dph"] < 0.01 < e["validation_all_std100_dph"]
 
 
+def test_one_grid_of_100s_blocks_and_a_missing_sample_keeps_its_block():
+    """The std of 100-s means and the in-range test use one grid, counted from the run's first row;
+    a failed probe conversion (a missing input) takes out its sample, not its whole block."""
+    t = np.arange(3000.0)
+    rng = np.random.default_rng(5)
+    block_level = rng.normal(0.0, 1.0, 30)
+    r = block_level[(t // 100).astype(int)] + rng.normal(0.0, 0.01, t.size)
+    probe = 20.0 + t / 3000.0
+    probe[1230:1290] = 99.0              # out of the training range: block 12 is out
+    probe[555] = np.nan                  # one failed conversion inside block 5
+    in_range = in_range_mask({"t1": probe}, {"t1": [19.0, 22.0]}, t.size)
+    r = np.where(np.isfinite(probe), r, np.nan)      # no prediction where the input is missing
+    got = range_aware_errors(r, r, t, in_range)
+    keep = np.ones(30, dtype=bool)
+    keep[12] = False
+    assert got["validation_std100_dph"] == pytest.approx(np.std(block_level[keep], ddof=1), abs=0.01)
+    # the same with the first rows missing: the grid stays anchored at the first row
+    r2 = r.copy()
+    r2[:30] = np.nan
+    got2 = range_aware_errors(r2, r2, t, in_range)
+    assert got2["validation_std100_dph"] == pytest.approx(np.std(block_level[keep], ddof=1), abs=0.01)
+
+
 def test_short_data_gives_a_clear_error_naming_the_minimum():
     train, _ = make_run([("hold", 200)], {}, seed=1)
     validate, _ = make_run([("hold", 200)], {}, seed=2)

@@ -149,7 +149,10 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                        validate: Dataset, ctx: fx.Context, declared_name: str) -> dict[str, Any]:
     t_tr, t_va = train.time, validate.time
     in_range = design.in_range if design.in_range is not None else np.ones(len(validate), dtype=bool)
-    in_blocks = whole_blocks(in_range, t_va)
+    # a validation sample with a missing value (a failed probe conversion) enters no mean, so it does
+    # not take its block out of range
+    usable_va = np.isfinite(y_val) & np.all(np.isfinite(design.validate), axis=1)
+    in_blocks = whole_blocks(in_range, t_va, usable=usable_va)
     # the part of the validation run the diagnosis uses: the in-range part, unless it is too short to
     # judge anything (then the whole run with the declared inputs as measured, never clipped)
     n_in = int(np.sum(np.isfinite(block_means(t_va, {"r": np.where(in_blocks, y_val, np.nan)}, BLOCK_S).columns["r"])))

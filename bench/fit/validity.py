@@ -53,17 +53,21 @@ def outside_summary(signals: Mapping[str, np.ndarray], ranges: Mapping[str, list
     return out
 
 
-def whole_blocks(mask: np.ndarray, time_s: np.ndarray, block_s: float = 100.0) -> np.ndarray:
-    """``mask`` reduced to the ``block_s`` blocks (from the run's start, as the std of 100-s means
-    counts them) that lie wholly inside it: a block mean is in range only if all its samples are."""
+def whole_blocks(mask: np.ndarray, time_s: np.ndarray, block_s: float = 100.0,
+                 usable: np.ndarray | None = None) -> np.ndarray:
+    """``mask`` reduced to the ``block_s`` blocks (counted from the run's first row, the grid of every
+    std of 100-s means, ``bench.fit.metrics.window_means``) in which every usable sample lies inside
+    it: a block mean is in range only if every sample that enters it is.  A sample that enters no
+    mean (``usable`` False: a failed probe conversion, a missing gyro value) does not take its block
+    out of range."""
     t = np.asarray(time_s, dtype=np.float64)
     m = np.asarray(mask, dtype=bool)
     if len(t) == 0:
         return m
+    counts = np.ones(len(t), dtype=bool) if usable is None else np.asarray(usable, dtype=bool)
     block = np.floor((t - t[0]) / float(block_s)).astype(np.int64)
-    total = np.bincount(block)
-    inside = np.bincount(block, m.astype(np.int64), len(total))
-    return (inside == total)[block] & m
+    outside = np.bincount(block, (counts & ~m).astype(np.int64))
+    return (outside == 0)[block] & m
 
 
 def range_aware_errors(residual: np.ndarray, deployed_residual: np.ndarray, time_s: np.ndarray,
@@ -74,7 +78,7 @@ def range_aware_errors(residual: np.ndarray, deployed_residual: np.ndarray, time
     r = np.asarray(residual, dtype=np.float64)
     usable = np.isfinite(r)
     inside = usable & in_range
-    r_in = np.where(whole_blocks(in_range, time_s) & usable, r, np.nan)
+    r_in = np.where(whole_blocks(in_range, time_s, usable=usable) & usable, r, np.nan)
     n_usable = int(usable.sum())
     return {
         "validation_std100_dph": bias_stability(time_s, r_in, 100.0),

@@ -79,10 +79,10 @@ def _design(case: Case, ch: str, cols: dict, with_truth: bool) -> np.ndarray:
 
 def _in_range_rows(case: Case, ch: str, sig_t: Signals, sig_v: Signals, rows_train: np.ndarray,
                    measured: np.ndarray) -> np.ndarray:
-    """Measured validation rows that count as in range.  As the product does it (found by feeding it
-    crafted runs): the range test runs on 100-s blocks counted from the run's first row; a block in
-    which any measured row has a declared input outside its training range, or missing (a failed
-    conversion), is dropped whole."""
+    """Measured validation rows that count as in range: the range test runs on 100-s blocks counted
+    from the run's first row; a block in which any measured row with every declared input present has
+    an input outside its training range is dropped whole (a row with a missing input, a failed
+    conversion, enters no mean and drops nothing)."""
     probe = case.truth[ch]["probe"]
     ins_t = declared_inputs(case.model, sig_t, probe)
     ins_v = declared_inputs(case.model, sig_v, probe)
@@ -91,21 +91,23 @@ def _in_range_rows(case: Case, ch: str, sig_t: Signals, sig_v: Signals, rows_tra
         lo, hi = np.min(ins_t[k][rows_train]), np.max(ins_t[k][rows_train])
         ok &= (ins_v[k] >= lo) & (ins_v[k] <= hi)
     grid = block_index(sig_v.t, sig_v.t[0], BLOCK_S)
-    bad = np.unique(grid[measured & ~ok])
+    present = np.ones(sig_v.t.size, dtype=bool)
+    for k in ins_v:
+        present &= np.isfinite(ins_v[k])
+    bad = np.unique(grid[measured & present & ~ok])
     return measured & ~np.isin(grid, bad)
 
 
 def channel_score(case: Case, ch: str) -> ChannelScore:
     """Before and oracle on the validation run: std (ddof 1) of the 100-s means over the in-range
-    rows, blocks counted from the first in-range row, only blocks holding at least half their samples
-    (the product's blocking, matched on crafted runs and on this referee's cases)."""
+    rows, blocks counted from the run's first row, only blocks holding at least half their usual
+    number of samples (the median per block)."""
     ct, cv = case.columns["train"], case.columns["validate"]
     sig_t = recorded_signals(ct, interpolate=False)
     sig_v = recorded_signals(cv, interpolate=False)
     yt, yv = ct[f"gyro_{ch}"], cv[f"gyro_{ch}"]
     tv = cv["time_s"]
     measured = np.isfinite(yv)
-    per_block = BLOCK_S / float(np.median(np.diff(tv)))
     out = {}
     for label, truth in (("before", False), ("oracle", True)):
         xt, xv = _design(case, ch, ct, truth), _design(case, ch, cv, truth)
@@ -114,14 +116,14 @@ def channel_score(case: Case, ch: str) -> ChannelScore:
         if not use.any():
             out[label], out["n"] = float("nan"), (0, 0)
             continue
-        idx = block_index(tv, tv[use][0], BLOCK_S)
+        idx = block_index(tv, tv[0], BLOCK_S)
         scale = np.max(np.abs(xt[rt]), axis=0)
         scale[scale == 0] = 1.0
         coef, *_ = np.linalg.lstsq(xt[rt] / scale, yt[rt], rcond=None)
         res = yv[use] - (xv[use] / scale) @ coef
         blocks, means = block_means(idx[use], res)
         counts = np.array([np.sum(idx[use] == b) for b in blocks])
-        sel = counts >= 0.5 * per_block
+        sel = counts >= 0.5 * float(np.median(np.bincount(idx)[np.bincount(idx) > 0]))
         out[label] = float(np.std(means[sel, 0], ddof=1)) if sel.sum() > 2 else float("nan")
         out["n"] = (int(sel.sum()), int(np.unique(block_index(tv[measured], tv[measured][0], BLOCK_S)).size))
     return ChannelScore(before_std100=out["before"], oracle_std100=out["oracle"],
