@@ -136,7 +136,8 @@ def test_the_joint_refit_finds_a_memory_delay_and_charges_it():
     ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
     fam = next(f for f in fx.families(ctx, fine)
                if dict(f.fixed).get("form") == "reversal" and dict(f.fixed).get("start") == "reversed")
-    assert fam.delayed and fam.with_delay(90.0) == fam and fam.with_delay(90.0).label != fam.label
+    assert fam.delayed and fam.with_delay(90.0) == fam and fam.with_delay(90.0).label == fam.label
+    assert fam.with_delay(90.0).at(3.0).label != fam.at(3.0).label          # the column cache's key
     truth = fam.with_delay(90.0).at(3.0)
     rng = np.random.default_rng(5)
     y = 0.3 * next(iter(truth.columns(fine).values())) + rng.normal(0, 0.01, len(t))

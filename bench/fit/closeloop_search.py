@@ -264,7 +264,7 @@ class SearchProblem:
         tried: dict[float, float] = {}
 
         def at(d: float) -> float:
-            d = round(float(d), 1)
+            d = float(round(d))
             if d not in tried:
                 f = family.with_delay(d)
                 res = minimize_scalar(lambda lv: self.ssr(others + (f.at(float(np.exp(lv))),)),
@@ -273,14 +273,14 @@ class SearchProblem:
                 tried[d] = float(res.fun)
             return tried[d]
 
-        grid = sorted(set(fx.MEMORY_DELAYS_S) | {round(family.delay_s, 1)})
+        grid = sorted(set(fx.MEMORY_DELAYS_S) | {family.delay_s})
         costs = [at(d) for d in grid]
         i = int(np.argmin(costs))
         lo_lim, hi_lim = fx.MEMORY_DELAY_LIMITS_S
         lo = grid[i - 1] if i > 0 else lo_lim
         hi = grid[i + 1] if i + 1 < len(grid) else hi_lim
         if hi > lo:
-            minimize_scalar(at, bounds=(lo, hi), method="bounded", options={"xatol": 3.0})
+            minimize_scalar(at, bounds=(lo, hi), method="bounded", options={"xatol": 2.0})
         best = min(tried, key=tried.get)
         return self._best_value(family.with_delay(best), others)
 

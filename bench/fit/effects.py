@@ -177,11 +177,13 @@ class Family:
 
     @property
     def label(self) -> str:
-        items = list(self.fixed) + ([("delay_s", f"{self.delay_s:.3g}")] if self.delayed else [])
-        return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in items) + ")"
+        """The family's name (its identity: a memory's delay is a searched value, in ``Effect.label``)."""
+        return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in self.fixed) + ")"
 
     def with_delay(self, delay_s: float) -> "Family":
-        return replace(self, delay_s=float(delay_s))
+        """The family with its memory's delay set (to the whole second: finer is beyond the data's
+        timing, and the delay is part of an effect's label)."""
+        return replace(self, delay_s=float(round(delay_s)))
 
     def penalty(self, n_eff: float) -> float:
         """BIC penalty of the family's searched parameters: ln(n_eff) for each continuous one (a
@@ -225,7 +227,10 @@ class Effect:
 
     @property
     def label(self) -> str:
-        return self.family.label + (f"[{self.family.param}={_round(self.value)}]" if self.family.param else "")
+        values = [f"{self.family.param}={_round(self.value)}"] if self.family.param else []
+        if self.family.delayed:
+            values.append(f"delay_s={_round(self.family.delay_s)}")
+        return self.family.label + (f"[{', '.join(values)}]" if values else "")
 
     def columns(self, inputs: Inputs) -> dict[str, np.ndarray]:
         if self.family.delayed:
