@@ -260,18 +260,19 @@ class SearchProblem:
         each delay with its parameter re-fitted near the current one (a later path is met by a smaller
         width), then bounded golden section between the best point's neighbours; the parameter is
         re-fitted in full at the delay chosen."""
-        here, _c = self._best_value(family, others)
-        tried: dict[float, float] = {}
+        here, here_cost = self._best_value(family, others)
+        tried: dict[float, tuple[float, float]] = {}       # delay -> (SSR, width)
 
         def at(d: float) -> float:
             d = float(round(d))
             if d not in tried:
                 f = family.with_delay(d)
-                res = minimize_scalar(lambda lv: self.ssr(others + (f.at(float(np.exp(lv))),)),
-                                      bounds=(np.log(here.value) - DELAY_PROFILE_SPAN, np.log(here.value) + DELAY_PROFILE_SPAN),
+                lw = np.log(here.value)
+                res = minimize_scalar(lambda v: self.ssr(others + (f.at(float(np.exp(v))),)),
+                                      bounds=(lw - DELAY_PROFILE_SPAN, lw + DELAY_PROFILE_SPAN),
                                       method="bounded", options={"xatol": 0.03})
-                tried[d] = float(res.fun)
-            return tried[d]
+                tried[d] = (float(res.fun), float(np.exp(res.x)))
+            return tried[d][0]
 
         grid = sorted(set(fx.MEMORY_DELAYS_S) | {family.delay_s})
         costs = [at(d) for d in grid]
@@ -281,8 +282,11 @@ class SearchProblem:
         hi = grid[i + 1] if i + 1 < len(grid) else hi_lim
         if hi > lo:
             minimize_scalar(at, bounds=(lo, hi), method="bounded", options={"xatol": 2.0})
-        best = min(tried, key=tried.get)
-        return self._best_value(family.with_delay(best), others)
+        best = min(tried, key=lambda d: tried[d][0])
+        # the width re-fitted in full at the delay chosen; the profile's own width when that is better
+        full = self._best_value(family.with_delay(best), others)
+        profiled = (family.with_delay(best).at(tried[best][1]), tried[best][0])
+        return min((here, here_cost), full, profiled, key=lambda r: r[1])
 
     def _best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         if not family.param:

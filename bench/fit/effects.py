@@ -115,7 +115,7 @@ class Inputs:
             key = (probe, round(float(delay_s), 1))
             cache = self.__dict__.setdefault("_delayed_paths", {})
             if key not in cache:
-                cache[key] = np.interp(self.time - key[1], self.time, got)
+                cache[key] = delayed_path(self.time, got, key[1])
             got = cache[key]
         return got
 
@@ -385,6 +385,16 @@ def temperature_path(time_s: np.ndarray, temp: np.ndarray) -> np.ndarray:
     if not band > 0:
         return smooth
     return _backlash(smooth, band / 2.0, float(smooth[0]))
+
+
+def delayed_path(time_s: np.ndarray, path: np.ndarray, delay_s: float) -> np.ndarray:
+    """The path as an element ``delay_s`` behind the probe follows it: through a first-order lag of
+    that time constant (the element's own thermal path, as ``thermal_lag``); a negative delay is an
+    element ahead of the probe (the probe's own lag behind it): the path that much earlier, held at
+    the run's end."""
+    if delay_s > 0:
+        return first_order_lag(path, time_s, delay_s)
+    return np.interp(time_s - delay_s, time_s, path)
 
 
 def _centred_mean(x: np.ndarray, half: int) -> np.ndarray:
