@@ -105,7 +105,7 @@ class Inputs:
     def path(self, probe: str, delay_s: float = 0.0) -> np.ndarray:
         """The probe's temperature path as a hysteresis memory follows it (``temperature_path``): given
         at the run's own rate by ``build_inputs`` and averaged with the other inputs, computed here
-        otherwise; ``delay_s`` later (the path at t - delay_s, held at the run's ends; cached)."""
+        otherwise; as an element ``delay_s`` behind the probe follows it (``delayed_path``; cached)."""
         if self.paths is None:
             self.paths = {}
         got = self.paths.get(probe)
