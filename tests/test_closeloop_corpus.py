@@ -21,9 +21,6 @@ KNOWN_MISSES = {
     "effect_validation_colder": {1: "y: a gradient t1-t2 taken for a lag of t1 (the training run cannot tell "
                                     "them apart: delta-BIC margin 2, now named in ambiguous_with); "
                                     "partly_explained"},
-    "effect_with_logger_gaps": {2: "z: gradual hysteresis on t4 across logger outages: the memory, driven by "
-                                   "the filtered rate, does not move over an outage while the temperature "
-                                   "does; after 2.3x the oracle (partly_explained, honest)"},
 }
 
 

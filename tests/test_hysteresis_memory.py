@@ -16,12 +16,17 @@ def _inputs(time_s: np.ndarray, temp: np.ndarray) -> fx.Inputs:
 
 
 def test_reversal_relay_switches_after_a_reversal_of_one_width():
-    x = np.array([0.0, 1.0, 2.9, 3.0, 8.0, 10.0, 8.0, 7.1, 7.0, 2.0, 4.0, 5.0])
+    x = np.array([0.0, 1.0, 2.0, 4.0, 8.0, 10.0, 8.0, 7.5, 6.0, 2.0, 4.0, 6.0, 7.0])
     got = fx.reversal_relay_state(x, 3.0, -1.0)
-    #              rises 3 above the minimum 0 -> +1; falls 3 below the maximum 10 -> -1; rises 3 above 2 -> +1
-    np.testing.assert_array_equal(got, [-1, -1, -1, 1, 1, 1, 1, 1, -1, -1, -1, 1])
+    # rises 3 above the minimum 0 (level 3, half-way through the step 2 -> 4): -1 -> +1 with the step
+    # shared; falls 3 below the maximum 10 (level 7, two thirds into 7.5 -> 6): to -1; rises 3 above 2
+    # (level 5, half-way through 4 -> 6): to +1
+    np.testing.assert_allclose(got, [-1, -1, -1, 0, 1, 1, 1, 1, -1 / 3, -1, -1, 0, 1])
     # started on the branch it is driven to, it holds until the first reversal
     np.testing.assert_array_equal(fx.reversal_relay_state(x, 3.0, 1.0)[:8], np.ones(8))
+    # the state's share of a step moves continuously with the width
+    a, b = fx.reversal_relay_state(x, 3.0, -1.0)[3], fx.reversal_relay_state(x, 3.2, -1.0)[3]
+    assert a - b == pytest.approx(0.2)
 
 
 def test_relay_state_is_fixed_by_the_temperature_path_after_the_first_excursion():
@@ -30,7 +35,7 @@ def test_relay_state_is_fixed_by_the_temperature_path_after_the_first_excursion(
     w = 2.0
     first = int(np.flatnonzero(np.abs(x - x[0]) >= w)[0])
     up, down = fx.reversal_relay_state(x, w, 1.0), fx.reversal_relay_state(x, w, -1.0)
-    np.testing.assert_array_equal(up[first:], down[first:])
+    np.testing.assert_array_equal(up[first + 1:], down[first + 1:])
     assert np.any(up[:first] != down[:first])
 
 
@@ -74,3 +79,78 @@ def test_training_search_chooses_the_start_rule_and_width(form, start):
     best = min(fits, key=lambda k: fits[k][1])
     assert best == truth.label
     assert fits[best][0].value == pytest.approx(width, rel=0.1)
+
+
+def _readings(t: np.ndarray, temp: np.ndarray, seed: int) -> np.ndarray:
+    """A DS18B20-like probe: read noise, 0.0625 C steps."""
+    rng = np.random.default_rng(seed)
+    return np.round((temp + rng.normal(0, 0.02, len(t))) / 0.0625) * 0.0625
+
+
+def test_the_temperature_path_moves_no_memory_in_a_soak_and_follows_a_ramp():
+    t = np.arange(0.0, 30000.0)
+    temp = np.interp(t, [0, 4000, 14000, 30000], [20, 20, 45, 45])
+    path = fx.temperature_path(t, _readings(t, temp, 1))
+    soak, ramp = (t > 15000), (t > 4500) & (t < 13500)
+    assert np.sum(np.abs(np.diff(path[soak]))) < 0.05          # noise and steps held in the dead band
+    assert np.sum(np.abs(np.diff(path[ramp]))) == pytest.approx(np.ptp(temp[ramp]), abs=0.1)
+    assert np.max(np.abs(path - temp)) < 0.1
+    # the readings themselves would drive a Duhem memory through the soak's noise: it decays to 0
+    assert abs(fx.duhem_memory(_readings(t, temp, 1), 4.0)[-1]) < 0.5 < fx.duhem_memory(path, 4.0)[-1]
+
+
+def test_a_memory_of_the_path_is_carried_across_a_recording_outage():
+    t = np.arange(0.0, 40000.0)
+    temp = np.interp(t, [0, 3000, 15000, 22000, 40000], [20, 20, 44, 44, 10])
+    x = _readings(t, temp, 2)
+    keep = np.ones(len(t), dtype=bool)
+    keep[8000:11000] = False                                   # 50 min missing mid-ramp
+    keep[30000:30400] = False
+    full, gappy = fx.temperature_path(t, x), fx.temperature_path(t[keep], x[keep])
+    for width in (1.0, 5.0):
+        for memory in (fx.duhem_memory, fx.play_memory):
+            # equal but for the readings' noise at the outage's edges (the mean there is over fewer readings)
+            np.testing.assert_allclose(memory(gappy, width, -1.0), memory(full, width, -1.0)[keep], atol=0.06)
+            # the relay: the same switches (a switching sample may share its step differently)
+            relay_gap = fx.reversal_relay_state(gappy, width, -1.0)
+            relay_full = fx.reversal_relay_state(full, width, -1.0)[keep]
+            assert np.sum(np.abs(relay_gap - relay_full) > 0.06) <= 3
+    # a memory driven by the filtered rate stops over the outage while the temperature moves on
+    rate = fx.rate_c_per_min(x[keep], t[keep], 300.0)
+    after = int(np.searchsorted(t[keep], 11000))
+    frozen = fx.duhem_state(rate, t[keep], 20.0, -1.0)[after]
+    assert abs(frozen - fx.duhem_memory(full, 20.0, -1.0)[11000]) > 0.2
+
+
+def test_play_memory_moves_one_for_one_after_a_reversal_and_saturates_after_one_width():
+    x = np.array([0.0, 2.0, 6.0, 10.0, 9.0, 8.0, 6.0, 4.0, 5.0])
+    m = fx.play_memory(x, 4.0)                                 # half width 2: m = (x - p) / 2
+    np.testing.assert_allclose(m, [0.0, 1.0, 1.0, 1.0, 0.5, 0.0, -1.0, -1.0, -0.5])
+    np.testing.assert_allclose(fx.play_memory(x, 4.0, -1.0)[:3], [-1.0, 0.0, 1.0])
+
+
+def test_the_joint_refit_finds_a_memory_delay_and_charges_it():
+    t = np.arange(5.0, 60000.0, FINE_S)
+    temp = np.interp(t, [0, 6000, 14000, 20000, 30000, 38000, 46000, 60000], [20, 20, 45, 45, 5, 30, 12, 40])
+    fine = _inputs(t, temp)
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    fam = next(f for f in fx.families(ctx, fine)
+               if dict(f.fixed).get("form") == "reversal" and dict(f.fixed).get("start") == "reversed")
+    assert fam.delayed and fam.with_delay(90.0) == fam and fam.with_delay(90.0).label == fam.label
+    assert fam.with_delay(90.0).at(3.0).label != fam.at(3.0).label          # the column cache's key
+    truth = fam.with_delay(90.0).at(3.0)
+    rng = np.random.default_rng(5)
+    y = 0.3 * next(iter(truth.columns(fine).values())) + rng.normal(0, 0.01, len(t))
+    ev = evidence_blocks(t, {"y": y, "one": np.ones(len(t))})
+    problem = SearchProblem(yb=ev["y"], Xb=ev["one"][:, None], fine=fine,
+                            declared_signals_b=np.zeros((len(ev["y"]), 0)), families=[fam])
+    scanned, _ = problem.best_value(fam, ())
+    assert scanned.family.delay_s == 0.0                       # candidates are scanned at their delay
+    got, _ = problem.best_value(fam, (), refine_delay=True)
+    assert got.family.delay_s == pytest.approx(90.0, abs=15.0)
+    assert got.value == pytest.approx(3.0, rel=0.05)
+    assert got.params["delay_s"] == pytest.approx(got.family.delay_s, abs=1.0)
+    # the delay is a searched parameter: one more ln(n_eff) than the width alone
+    plain = fx.Family("hysteresis", fam.fixed, fam.builder, "width_c", fam.grid, chosen_probe=False,
+                      variants=fam.variants)
+    assert fam.penalty(100.0) - plain.penalty(100.0) == pytest.approx(np.log(100.0))

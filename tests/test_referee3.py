@@ -15,12 +15,7 @@ from tests.referee3 import physics as ph
 from tests.referee3.cases import build_case
 from tests.referee3.score import score_case
 
-KNOWN_MISSES: dict[tuple[str, int], str] = {
-    ("relay_hysteresis", 1): "right kind and probe (reversal hysteresis on t2), explained, but validation "
-                             "std100 0.0395 = 1.21x the oracle 0.0327 (all five seeds 1.21-1.34x)",
-    ("gradual_hysteresis", 2): "right kind and probe (gradual hysteresis on t2), partly_explained, "
-                               "validation std100 0.0554 = 1.68x the oracle 0.0329",
-}
+KNOWN_MISSES: dict[tuple[str, int], str] = {}
 
 CASES = [("complete_colder", 1), ("lag", 1), ("unrecorded_humidity", 1), ("relay_hysteresis", 1),
          ("gradual_hysteresis", 2)]

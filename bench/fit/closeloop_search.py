@@ -42,6 +42,8 @@ P_MAX = 1e-3
 DBIC_MIN = 10.0
 MIN_CV_GAIN = 0.02
 MAX_EFFECTS = 4
+# a memory's delay is profiled with its width re-fitted within this factor (log) of its current width
+DELAY_PROFILE_SPAN = float(np.log(2.0))
 CV_FOLDS = 8
 PAIR_POOL = 6
 PAIR_DBIC = 6.0
@@ -241,10 +243,52 @@ class SearchProblem:
         return (1.0 - sse1 / sse0, "") if sse0 > 0 else (float("nan"), CV_NO_FOLD)
 
     # ---------------------------------------------------------------- parameter search
-    def best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
+    def best_value(self, family: fx.Family, others: tuple[fx.Effect, ...],
+                   refine_delay: bool = False) -> tuple[fx.Effect, float]:
         """The family's continuous parameter that minimises the training SSR with ``others`` fixed
         (grid, then bounded golden section between the grid neighbours; from an end of the grid, out
-        to the family's bounds: the grid is where the scan starts, not a limit on the answer)."""
+        to the family's bounds: the grid is where the scan starts, not a limit on the answer).  With
+        ``refine_delay`` a memory's delay (``fx.Family.delayed``) is searched too, the parameter
+        re-fitted at each delay tried (the joint re-fit of added effects; candidates are scanned at
+        their family's current delay)."""
+        if refine_delay and family.delayed:
+            return self._best_delay(family, others)
+        return self._best_value(family, others)
+
+    def _best_delay(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
+        """Profile over the memory's delay: on the grid ``fx.MEMORY_DELAYS_S`` (and the current delay)
+        each delay with its parameter re-fitted near the current one (a later path is met by a smaller
+        width), then bounded golden section between the best point's neighbours; the parameter is
+        re-fitted in full at the delay chosen."""
+        here, here_cost = self._best_value(family, others)
+        tried: dict[float, tuple[float, float]] = {}       # delay -> (SSR, width)
+
+        def at(d: float) -> float:
+            d = float(round(d))
+            if d not in tried:
+                f = family.with_delay(d)
+                lw = np.log(here.value)
+                res = minimize_scalar(lambda v: self.ssr(others + (f.at(float(np.exp(v))),)),
+                                      bounds=(lw - DELAY_PROFILE_SPAN, lw + DELAY_PROFILE_SPAN),
+                                      method="bounded", options={"xatol": 0.03})
+                tried[d] = (float(res.fun), float(np.exp(res.x)))
+            return tried[d][0]
+
+        grid = sorted(set(fx.MEMORY_DELAYS_S) | {family.delay_s})
+        costs = [at(d) for d in grid]
+        i = int(np.argmin(costs))
+        lo_lim, hi_lim = fx.MEMORY_DELAY_LIMITS_S
+        lo = grid[i - 1] if i > 0 else lo_lim
+        hi = grid[i + 1] if i + 1 < len(grid) else hi_lim
+        if hi > lo:
+            minimize_scalar(at, bounds=(lo, hi), method="bounded", options={"xatol": 2.0})
+        best = min(tried, key=lambda d: tried[d][0])
+        # the width re-fitted in full at the delay chosen; the profile's own width when that is better
+        full = self._best_value(family.with_delay(best), others)
+        profiled = (family.with_delay(best).at(tried[best][1]), tried[best][0])
+        return min((here, here_cost), full, profiled, key=lambda r: r[1])
+
+    def _best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         if not family.param:
             eff = family.at(None)
             return eff, self.ssr(others + (eff,))
@@ -261,12 +305,15 @@ class SearchProblem:
         return family.at(grid[i]), float(costs[i])
 
     def refit_jointly(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
-        """Joint re-fit of every added effect's nonlinear parameters, then swaps."""
-        return self.swap(self.refit_params(effects))
+        """Joint re-fit of every added effect's nonlinear parameters (a memory's delay included), then
+        swaps."""
+        return self.swap(self.refit_params(effects, refine_delay=True))
 
-    def refit_params(self, effects: tuple[fx.Effect, ...], keep_families: bool = False) -> tuple[fx.Effect, ...]:
+    def refit_params(self, effects: tuple[fx.Effect, ...], keep_families: bool = False,
+                     refine_delay: bool = False) -> tuple[fx.Effect, ...]:
         """Coordinate sweeps: each added effect's probe/pair/form and parameter re-chosen within its
-        kind with the others held (``keep_families``: only the continuous parameters)."""
+        kind with the others held (``keep_families``: only the continuous parameters; ``refine_delay``:
+        an added memory's delay profiled too, other families at their current delay)."""
         current = tuple(effects)
         n_eff = self.score(current, with_cv=False).n_eff
         best = self.bic(current, n_eff)
@@ -275,13 +322,17 @@ class SearchProblem:
             for i, eff in enumerate(current):
                 others = current[:i] + current[i + 1:]
                 fams = [eff.family] if keep_families else \
-                    [f for f in self.families if f.kind == eff.kind and not any(o.family == f for o in others)]
+                    [eff.family if f == eff.family else f for f in self.families
+                     if f.kind == eff.kind and not any(o.family == f for o in others)]
                 if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
                     coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
                                                             for v in (f.grid or (None,))))
                     fams = coarse[:2]
+                    if refine_delay and eff.family.delayed and eff.family not in fams:
+                        fams.append(eff.family)      # a memory in place always has its delay profiled
                 for fam in fams:
-                    cand, _s = self.best_value(fam, others)
+                    # the memory's delay is profiled for the family in place (the others at its current delay)
+                    cand, _s = self.best_value(fam, others, refine_delay=refine_delay and fam == eff.family)
                     trial = others[:i] + (cand,) + others[i:]
                     b = self.bic(trial, n_eff)
                     if b < best - 1e-9:             # BIC: another form or probe pays for its columns

@@ -2,7 +2,7 @@
 
 Every effect is a *family*: a kind, the probe (or probe pair) it acts through, and at most one
 continuous nonlinear parameter (a time constant, a threshold, a width) that the close-loop search
-scans on a grid and refines.  A family turns the run's ``Inputs`` into regressor columns.  The kinds
+scans on a grid and refines (a hysteresis memory has a second one, its delay).  A family turns the run's ``Inputs`` into regressor columns.  The kinds
 and the signature each one explains (calibration-notes section 3), each on EVERY probe:
 
 ``thermal_lag(probe, tau)``     the sensing element follows ``probe`` through a first-order lag tau:
@@ -18,8 +18,15 @@ searched parameter in the BIC.
 ``temp_rate_cross(probe)``      (T - 25) dT/dt
 ``hysteresis(probe, relay)``    heating vs cooling: a relay state +1 after heating faster than a
                                 threshold (C/min), -1 after cooling faster, held in between
-``hysteresis(probe, gradual)``  a memory that saturates over a temperature excursion (Duhem form):
-                                dm = (sign(dT) - m) |dT| / width, m in [-1, 1]
+``hysteresis(probe, reversal)`` a relay on the temperature path (a Schmitt trigger): +1 once the
+                                temperature has risen a width (C) above its last minimum, -1 once it has
+                                fallen a width below its last maximum
+``hysteresis(probe, gradual)``  a memory that saturates over a temperature excursion, of two shapes:
+                                Duhem, dm = (sign(dT) - m) |dT| / width, and play (backlash), which
+                                moves one-for-one with T after a reversal and saturates after one width
+The memories follow the probe's temperature path (``temperature_path``: readings' noise averaged out,
+defined across recording outages), with a searched delay behind (or ahead of) the probe, and start from
+a rule read off the run's own temperatures (``MEMORY_STARTS``).
 ``warmup(tau)``                 exp(-t_on / tau), t_on = time since the last power-on (since the start of
                                 the run when no ``power`` column is recorded)
 ``g_sensitivity``               gravity projection on the body axes from the orientation column
@@ -32,7 +39,7 @@ run or its block means (the search runs on block means: the regressors are smoot
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Callable
 
@@ -40,7 +47,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.signal import block_means, linear_recurrence, orientation_axes_per_sample, temperature_rate
+from bench.signal import block_means, linear_recurrence, orientation_axes_per_sample, run_segments, temperature_rate
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -77,6 +84,7 @@ class Inputs:
     power_known: bool
     up: np.ndarray | None                   # (n, 3) up component of the body axes x, y, z
     input_rate: np.ndarray | None           # deg/h along the channel (Earth + table)
+    paths: dict[str, np.ndarray] | None = None   # the temperature paths memories follow (``temperature_path``)
 
     @property
     def dt(self) -> float:
@@ -94,6 +102,23 @@ class Inputs:
             got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
         return got
 
+    def path(self, probe: str, delay_s: float = 0.0) -> np.ndarray:
+        """The probe's temperature path as a hysteresis memory follows it (``temperature_path``): given
+        at the run's own rate by ``build_inputs`` and averaged with the other inputs, computed here
+        otherwise; as an element ``delay_s`` behind the probe follows it (``delayed_path``; cached)."""
+        if self.paths is None:
+            self.paths = {}
+        got = self.paths.get(probe)
+        if got is None:
+            got = self.paths[probe] = temperature_path(self.time, self.temps[probe])
+        if delay_s:
+            key = (probe, round(float(delay_s), 1))
+            cache = self.__dict__.setdefault("_delayed_paths", {})
+            if key not in cache:
+                cache[key] = delayed_path(self.time, got, key[1])
+            got = cache[key]
+        return got
+
     def __len__(self) -> int:
         return len(self.time)
 
@@ -103,6 +128,7 @@ class Inputs:
             return self
         cols = {f"T:{k}": v for k, v in self.temps.items()}
         cols.update({f"R:{k}": v for k, v in self.rates.items()})
+        cols.update({f"P:{k}": v for k, v in (self.paths or {}).items()})
         cols["since_on"] = self.since_on
         if self.up is not None:
             cols.update({f"up{i}": self.up[:, i] for i in range(3)})
@@ -114,7 +140,7 @@ class Inputs:
                       rates={k: c[f"R:{k}"] for k in self.rates}, since_on=c["since_on"],
                       power_known=self.power_known,
                       up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
-                      input_rate=c.get("w_in"))
+                      input_rate=c.get("w_in"), paths={k: c[f"P:{k}"] for k in (self.paths or {})})
 
 
 @dataclass(frozen=True)
@@ -132,6 +158,11 @@ class Family:
     limits: tuple[float, float] | None = None   # where the parameter stays meaningful (None: one grid
                                                 # step beyond each end of the grid)
     variants: int = 1              # discrete variants of the family on one probe (a memory's start rules)
+    # a memory's second searched parameter: the delay (s) of the temperature path it follows behind
+    # the probe's (negative: ahead of it).  ``delayed`` families search it (and pay for it); the value
+    # is part of the family, not of its identity (one memory per probe, form and start)
+    delayed: bool = False
+    delay_s: float = field(default=0.0, compare=False)
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -146,13 +177,20 @@ class Family:
 
     @property
     def label(self) -> str:
+        """The family's name (its identity: a memory's delay is a searched value, in ``Effect.label``)."""
         return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in self.fixed) + ")"
 
+    def with_delay(self, delay_s: float) -> "Family":
+        """The family with its memory's delay set (to the whole second: finer is beyond the data's
+        timing, and the delay is part of an effect's label)."""
+        return replace(self, delay_s=float(round(delay_s)))
+
     def penalty(self, n_eff: float) -> float:
-        """BIC penalty of the family's searched parameters: ln(n_eff) for the continuous one, ln(number
-        of options) for the probe or pair chosen among the data's (a discrete model choice; none for
-        the declared model's own probe, whose variants, e.g. a memory's start rule, still count)."""
-        pen = np.log(n_eff) if self.param else 0.0
+        """BIC penalty of the family's searched parameters: ln(n_eff) for each continuous one (a
+        memory's delay too), ln(number of options) for the probe or pair chosen among the data's (a
+        discrete model choice; none for the declared model's own probe, whose variants, e.g. a memory's
+        start rule, still count)."""
+        pen = np.log(n_eff) * ((1 if self.param else 0) + (1 if self.delayed else 0))
         if self.fixed and self.chosen_probe and self.options > 1:
             pen += np.log(self.options)
         elif self.variants > 1:
@@ -163,7 +201,7 @@ class Family:
     def n_nonlinear(self) -> int:
         """Searched nonlinear parameters, for the BIC penalty: the continuous one, and the probe or
         pair choice unless it is the declared model's own probe (the default, no choice made)."""
-        return (1 if self.param else 0) + (1 if self.fixed and self.chosen_probe else 0)
+        return (1 if self.param else 0) + (1 if self.delayed else 0) + (1 if self.fixed and self.chosen_probe else 0)
 
     def at(self, value: float | None) -> "Effect":
         return Effect(self, None if value is None else float(value))
@@ -183,13 +221,20 @@ class Effect:
         out: dict[str, float | str] = dict(self.family.fixed)
         if self.family.param:
             out[self.family.param] = _round(self.value)
+        if self.family.delayed:
+            out["delay_s"] = _round(self.family.delay_s)
         return out
 
     @property
     def label(self) -> str:
-        return self.family.label + (f"[{self.family.param}={_round(self.value)}]" if self.family.param else "")
+        values = [f"{self.family.param}={_round(self.value)}"] if self.family.param else []
+        if self.family.delayed:
+            values.append(f"delay_s={_round(self.family.delay_s)}")
+        return self.family.label + (f"[{', '.join(values)}]" if values else "")
 
     def columns(self, inputs: Inputs) -> dict[str, np.ndarray]:
+        if self.family.delayed:
+            return self.family.builder(inputs, self.value, self.family.delay_s)
         return self.family.builder(inputs, self.value)
 
     def with_value(self, value: float) -> "Effect":
@@ -259,13 +304,106 @@ def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:
-    """Gradual (Duhem) hysteresis memory m in [-1, 1] driven by the filtered temperature change
-    dT = rate dt: m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width) at each step, so it
-    saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks; it
-    starts at ``start``."""
-    dT = np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0
-    a = np.exp(-np.abs(dT) / width_c)
-    return linear_recurrence(a, (1.0 - a) * np.sign(dT), float(start))
+    """The Duhem memory (``duhem_memory``) driven by a rate: steps dT = rate x the median sample
+    period."""
+    return _duhem(np.nan_to_num(rate_c_per_min_) * sample_period(time_s) / 60.0, width_c, start)
+
+
+def duhem_memory(path: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:
+    """Gradual (Duhem) hysteresis memory m in [-1, 1] driven by the changes dT of a temperature path
+    (``temperature_path``): at each step m moves towards sign(dT) by the fraction 1 - exp(-|dT| / width),
+    so it saturates after a one-way excursion of a few ``width_c`` and keeps its value during soaks; it
+    starts at ``start``.  A step over a recording outage is the path's change across it: exact for a
+    monotone outage (the memory depends only on the path's travel between its turning points)."""
+    x = np.asarray(path, dtype=np.float64)
+    return _duhem(np.diff(x, prepend=x[:1]), width_c, start)
+
+
+def _duhem(steps_c: np.ndarray, width_c: float, start: float) -> np.ndarray:
+    a = np.exp(-np.abs(steps_c) / width_c)
+    return linear_recurrence(a, (1.0 - a) * np.sign(steps_c), float(start))
+
+
+def play_memory(path: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:
+    """Gradual hysteresis of the play (backlash) form, a Prandtl-Ishlinskii cell: an internal position p
+    follows the temperature path x only when x is more than half of ``width_c`` away from it; the memory
+    m = (x - p) / (width_c / 2) in [-1, 1] moves one-for-one with x after a reversal and is saturated
+    once x has travelled one width from it.  It starts at ``start`` (p = x0 - start x width/2).  Like
+    every memory of the path it is defined across an outage by the path's change."""
+    x = np.asarray(path, dtype=np.float64)
+    h = width_c / 2.0
+    if not len(x):
+        return np.empty(0)
+    return (x - _backlash(x, h, float(x[0]) - float(np.clip(start, -1.0, 1.0)) * h)) / h
+
+
+def _backlash(x: np.ndarray, h: float, p0: float) -> np.ndarray:
+    """The play operator's position: p follows x only when x is more than ``h`` away from it."""
+    out = np.empty(len(x))
+    p = p0
+    for i, v in enumerate(x.tolist()):
+        if v > p + h:
+            p = v - h
+        elif v < p - h:
+            p = v + h
+        out[i] = p
+    return out
+
+
+# A memory follows the temperature, not its readings: the readings' noise and quantisation steps are
+# averaged out over PATH_SMOOTH_S (centred, within each stretch of the record), and what noise is left
+# is held inside a dead band of PATH_BAND_SIGMAS standard deviations of that average, so that a soak
+# moves no memory and a ramp moves it by the temperature's own change
+PATH_SMOOTH_S = 60.0
+PATH_BAND_SIGMAS = 8.0
+
+
+def temperature_path(time_s: np.ndarray, temp: np.ndarray) -> np.ndarray:
+    """The temperature path a hysteresis memory follows, from a probe's readings (C): missing readings
+    interpolated, a centred mean over ``PATH_SMOOTH_S`` (shrinking symmetrically at the ends of each
+    stretch, so a ramp is not bent), then a backlash (play) of the width of the averaged noise
+    (``PATH_BAND_SIGMAS`` x its standard deviation, from the readings' scatter about the mean).
+    Over a recording outage the path steps by the temperature's change across it."""
+    t = np.asarray(time_s, dtype=np.float64)
+    x = np.asarray(temp, dtype=np.float64)
+    ok = np.isfinite(x)
+    if ok.sum() < 2:
+        return _hold_missing(x)
+    x = np.interp(t, t[ok], x[ok])
+    dt = sample_period(t)
+    half = int(PATH_SMOOTH_S / dt / 2.0)
+    if half < 1:
+        return x
+    smooth = np.empty_like(x)
+    for seg in run_segments(t):
+        smooth[seg] = _centred_mean(x[seg], half)
+    # the readings' scatter about the mean: their standard deviation, the rarest 0.1 % left out (a
+    # glitch must not widen the band; quantisation steps flipping now and then must count)
+    resid = np.abs((x - smooth)[ok])
+    sigma = float(np.sqrt(np.mean(np.square(resid[resid <= np.quantile(resid, 0.999)]))))
+    band = PATH_BAND_SIGMAS * sigma / np.sqrt(2 * half + 1)
+    if not band > 0:
+        return smooth
+    return _backlash(smooth, band / 2.0, float(smooth[0]))
+
+
+def delayed_path(time_s: np.ndarray, path: np.ndarray, delay_s: float) -> np.ndarray:
+    """The path as an element ``delay_s`` behind the probe follows it: through a first-order lag of
+    that time constant (the element's own thermal path, as ``thermal_lag``); a negative delay is an
+    element ahead of the probe (the probe's own lag behind it): the path that much earlier, held at
+    the run's end."""
+    if delay_s > 0:
+        return first_order_lag(path, time_s, delay_s)
+    return np.interp(time_s - delay_s, time_s, path)
+
+
+def _centred_mean(x: np.ndarray, half: int) -> np.ndarray:
+    """Mean over x[i - k .. i + k], k = min(half, i, n - 1 - i)."""
+    n = len(x)
+    c = np.concatenate([[0.0], np.cumsum(x - x[0])])
+    i = np.arange(n)
+    k = np.minimum(np.minimum(half, i), n - 1 - i)
+    return (c[i + k + 1] - c[i - k]) / (2 * k + 1) + x[0]
 
 
 # How a hysteresis memory starts a run.  Its state at power-on is set by the unit's history before the
@@ -277,6 +415,15 @@ def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float,
 #               from it usually is);
 #   "continued" saturated on the branch of that first excursion (approached from the same side).
 MEMORY_STARTS = ("neutral", "reversed", "continued")
+# The shapes of a gradual memory: "duhem" saturates exponentially over its width of travel
+# (``duhem_memory``), "play" moves one-for-one with the temperature after a reversal and saturates
+# sharply after one width (``play_memory``)
+GRADUAL_SHAPES = ("duhem", "play")
+# The delay of a memory's temperature path behind its probe's (s): the element that remembers follows
+# the probe's temperature through its own thermal path (later; a probe behind the element: earlier).
+# Scanned on this grid and refined between its points (``SearchProblem.best_value``), within the limits
+MEMORY_DELAYS_S = tuple(float(d) for d in range(-300, 301, 30))
+MEMORY_DELAY_LIMITS_S = (-600.0, 600.0)
 
 
 def first_excursion_sign(temp: np.ndarray, width_c: float) -> float:
@@ -302,23 +449,33 @@ def memory_start(rule: str, temp: np.ndarray, width_c: float) -> float:
 def reversal_relay_state(temp: np.ndarray, width_c: float, start: float) -> np.ndarray:
     """Relay hysteresis on the temperature path (a Schmitt trigger on T): the state switches to +1
     once T has risen ``width_c`` above its lowest value since the last switch, to -1 once it has
-    fallen ``width_c`` below its highest; it holds in between and starts at ``start`` (+1 or -1)."""
+    fallen ``width_c`` below its highest; it holds in between and starts at ``start`` (+1 or -1).
+    The sample in whose step the switching level is crossed takes the share of the step after the
+    crossing (T linear within the step), so that the state's means move continuously with the width
+    and the path's timing, however coarse the samples."""
     x = _hold_missing(np.asarray(temp, dtype=np.float64)).tolist()
     out = np.empty(len(x))
     s = 1.0 if start >= 0 else -1.0
     hi = lo = x[0] if x else 0.0
+    prev = hi
     for i, v in enumerate(x):
+        o = None
         if s > 0:
             if v > hi:
                 hi = v
             elif hi - v >= width_c:
-                s, lo = -1.0, v
+                level = hi - width_c
+                after = (level - v) / (prev - v) if prev > v and prev > level else 1.0
+                s, lo, o = -1.0, v, 1.0 - 2.0 * after
         else:
             if v < lo:
                 lo = v
             elif v - lo >= width_c:
-                s, hi = 1.0, v
-        out[i] = s
+                level = lo + width_c
+                after = (v - level) / (v - prev) if v > prev and prev < level else 1.0
+                s, hi, o = 1.0, v, 2.0 * after - 1.0
+        out[i] = s if o is None else o
+        prev = v
     return out
 
 
@@ -366,7 +523,8 @@ def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
         if "table_rate_dps" in ds:
             w_in = w_in + np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=np.float64)) * 3600.0
     return Inputs(time=t, temps=temps, rates=rates, since_on=time_since_power_on(ds),
-                  power_known="power" in ds, up=up, input_rate=w_in)
+                  power_known="power" in ds, up=up, input_rate=w_in,
+                  paths={p: temperature_path(t, v) for p, v in temps.items()})
 
 
 # --------------------------------------------------------------------------------------------
@@ -414,20 +572,24 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         widths = _widths_for(inputs.temps[p])
         if widths:
             limits = (widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))
-            for start in MEMORY_STARTS:
-                def gradual(x: Inputs, w, p=p, start=start):
-                    m0 = memory_start(start, x.temps[p], w)
-                    return {f"duhem{w:.3g}({p},{start})": duhem_state(x.rates[p], x.time, w, m0)}
-                fixed = (("probe", p), ("form", "gradual")) + ((("start", start),) if start != "neutral" else ())
-                out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
-                                  limits=limits, variants=len(MEMORY_STARTS)))
+            for shape in GRADUAL_SHAPES:
+                for start in MEMORY_STARTS:
+                    def gradual(x: Inputs, w, delay=0.0, p=p, start=start, shape=shape):
+                        path = x.path(p, delay)
+                        memory = play_memory if shape == "play" else duhem_memory
+                        return {f"{shape}{w:.3g}({p},{start})": memory(path, w, memory_start(start, path, w))}
+                    fixed = (("probe", p), ("form", "gradual"), ("shape", shape)) + \
+                        ((("start", start),) if start != "neutral" else ())
+                    out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
+                                      limits=limits, variants=len(GRADUAL_SHAPES) * len(MEMORY_STARTS),
+                                      delayed=True))
             for start in MEMORY_STARTS[1:]:
-                def reversal(x: Inputs, w, p=p, start=start):
-                    s0 = memory_start(start, x.temps[p], w)
-                    return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(x.temps[p], w, s0)}
+                def reversal(x: Inputs, w, delay=0.0, p=p, start=start):
+                    path = x.path(p, delay)
+                    return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(path, w, memory_start(start, path, w))}
                 out.append(Family("hysteresis", (("probe", p), ("form", "reversal"), ("start", start)), reversal,
                                   "width_c", widths, chosen_probe=mine, limits=limits,
-                                  variants=len(MEMORY_STARTS) - 1))
+                                  variants=len(MEMORY_STARTS) - 1, delayed=True))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
@@ -463,7 +625,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
 
 def _option_key(f: Family) -> tuple:
     """The families one discrete choice is made among: a kind and form, over probes (and, for a
-    hysteresis memory, its start rule)."""
+    hysteresis memory, its start rule and shape)."""
     return (f.kind,) + tuple(kv for kv in f.fixed if kv[0] == "form")
 
 
