@@ -128,3 +128,37 @@ def test_gls_f_test_holds_its_level_under_flicker_noise_where_hac_does_not():
         hac.append(hac_wald_p(X1, yb, [1]))
     assert np.mean(np.array(gls) < 0.05) <= 0.15
     assert np.mean(np.array(hac) < 0.05) >= 0.25
+
+
+def _white_plus_flicker(rng, n: int, white: float, flicker_adev: float) -> np.ndarray:
+    """White rate noise plus flicker whose Allan deviation is ``flicker_adev`` (one-sided PSD h/f,
+    Allan variance 2 ln2 h)."""
+    f = np.fft.rfftfreq(4 * n, 1.0)
+    amp = np.zeros_like(f)
+    amp[1:] = np.sqrt(flicker_adev ** 2 / (2 * np.log(2)) / f[1:] / 2.0)    # unit white: one-sided PSD 2
+    x = np.fft.irfft(np.fft.rfft(rng.normal(size=4 * n)) * amp, 4 * n)[:n]
+    return rng.normal(0, white, n) + x
+
+
+def test_floor_over_judged_blocks_keeps_the_span_of_a_gap_and_its_limit_holds_its_level():
+    # two stretches of 1.7 h judged, 4 h apart: flicker over the span they cover, not over 120
+    # consecutive blocks; the noise level fitted from the data each time, its limit exceeded about
+    # as rarely as its level says
+    rng = np.random.default_rng(8)
+    n = 30_000
+    t = np.arange(float(n))
+    judged = (t < 6000) | ((t >= 20_000) & (t < 26_000))
+    idx = np.concatenate([np.arange(60), np.arange(200, 260)])
+    stds, over, consecutive, limits = [], [], [], []
+    for _ in range(150):
+        x = _white_plus_flicker(rng, n, 0.1, 0.01)
+        stds.append(np.std(x[judged].reshape(-1, 100).mean(axis=1), ddof=1))
+        model = fit_noise_model([(np.where(judged, x, np.nan), 1.0, t)])
+        fl = model.floor_over(idx)
+        over.append(fl["noise_floor_dph"] ** 2)
+        limits.append(fl["limit_dph"])
+        consecutive.append(model.floor(120 * 100.0)["noise_floor_dph"] ** 2)
+    stds = np.array(stds)
+    assert np.mean(over) == pytest.approx(np.mean(stds ** 2), rel=0.12)
+    assert np.mean(consecutive) < 0.9 * np.mean(stds ** 2)
+    assert np.mean(stds > np.array(limits)) <= 0.03

@@ -148,34 +148,35 @@ class NoiseModel:
         span they cover count, not over as many consecutive blocks).  The judged std of block means is
         the root of a Gaussian quadratic form: its covariance K = A (G + W) A / (M - 1) (G the noise
         terms' covariance of the block means at their lags, W = ``spread.block_cov`` the training
-        coefficients' error, A the centring).  Its mean is tr K; its quantiles come from the eigenvalues
-        of K by Pearson's three-moment chi-square approximation (Satterthwaite's two moments make the
-        upper tail too light when a few slow components dominate)."""
+        coefficients' error, A the centring).  Its mean is tr K; its quantiles come from tr K, tr K^2 and
+        tr K^3 by Pearson's three-moment chi-square approximation (Satterthwaite's two moments make the
+        upper tail too light when a few slow components dominate), widened by the uncertainty of the
+        fitted noise level (``floor_edf``)."""
         idx = np.rint(np.asarray(block_index, dtype=np.float64)).astype(np.int64)
         m = len(idx)
         if m < 2:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
                     "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
-        a = np.eye(m) - 1.0 / m
-        noise = a @ block_covariance(self, idx, block_s, mus) @ a
+        noise = centred(block_covariance(self, idx, block_s, mus))
         w = spread.block_cov if spread is not None and spread.block_cov is not None else None
         if w is not None and w.shape != (m, m):
             w = None
-        k = noise + (a @ w @ a if w is not None else 0.0)
+        k = noise + (centred(w) if w is not None else 0.0)
         k = 0.5 * (k + k.T) / (m - 1)
-        lam = np.clip(np.linalg.eigvalsh(k), 0.0, None)
-        var, noise_var = float(lam.sum()), float(np.trace(noise)) / (m - 1)
+        c1, c2, c3 = float(np.trace(k)), float(np.sum(k * k)), float(np.sum((k @ k) * k))
+        var, noise_var = c1, float(np.trace(noise)) / (m - 1)
         if w is None and spread is not None and spread.variance > 0:
             var += spread.variance             # no block covariance: its expected variance only
-        if not var > 0:
+        if not var > 0 or not c1 > 0:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
                     "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
-        parts = {mu: float(np.trace(a @ block_covariance(self, idx, block_s, (mu,)) @ a)) / (m - 1) for mu in mus}
+        parts = {mu: float(np.trace(centred(block_covariance(self, idx, block_s, (mu,))))) / (m - 1) for mu in mus}
         model_edf = self.floor_edf(parts)
-        lo, hi, limit = quadratic_form_quantiles(lam * var / max(float(lam.sum()), 1e-300),
+        r = var / c1                           # the fallback above scales the form as a whole
+        lo, hi, limit = quadratic_form_quantiles((var, c2 * r * r, c3 * r ** 3),
                                                  ((1 - INTERVAL) / 2, (1 + INTERVAL) / 2, 1 - LIMIT_P), model_edf)
         return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(np.sqrt(lo)), float(np.sqrt(hi))],
-                "limit_dph": float(np.sqrt(limit)), "edf": float(var ** 2 / max(float(np.sum(lam ** 2)), 1e-300)),
+                "limit_dph": float(np.sqrt(limit)), "edf": float(c1 * c1 / c2) if c2 > 0 else float(m - 1),
                 "noise_only_dph": float(np.sqrt(noise_var)),
                 "coefficient_spread_dph": float(np.sqrt(max(var - noise_var, 0.0))),
                 "blocks": int(m), "span_blocks": int(idx.max() - idx.min() + 1),
@@ -217,17 +218,24 @@ class CoefficientSpread:
     block_cov: np.ndarray | None = None
 
 
-def quadratic_form_quantiles(lam: np.ndarray, probs, scale_edf: float = float("inf")) -> list[float]:
-    """Quantiles of sum_i lam_i chi2_1 (lam >= 0) by Pearson's three-moment approximation: a shifted,
-    scaled chi-square a + b X, X ~ chi2_l, with the form's mean c1, variance 2 c2 and skewness
-    (c_j = sum lam^j, l = c2^3 / c3^2: it follows the largest eigenvalues).  With ``scale_edf`` = nu
+def centred(g: np.ndarray) -> np.ndarray:
+    """A g A with A = I - 11'/m (the covariance of centred values), in O(m^2)."""
+    g = np.asarray(g, dtype=np.float64)
+    return g - g.mean(axis=0, keepdims=True) - g.mean(axis=1, keepdims=True) + g.mean()
+
+
+def quadratic_form_quantiles(cumulants: tuple[float, float, float], probs,
+                             scale_edf: float = float("inf")) -> list[float]:
+    """Quantiles of sum_i lam_i chi2_1 (lam >= 0, the eigenvalues of a covariance K; ``cumulants`` =
+    (c1, c2, c3), c_j = sum lam^j = tr K^j) by Pearson's three-moment approximation: a shifted, scaled
+    chi-square a + b X, X ~ chi2_l, with the form's mean c1, variance 2 c2 and skewness
+    (l = c2^3 / c3^2: it follows the largest eigenvalues).  With ``scale_edf`` = nu
     finite, the lam are an estimate whose scale is itself uncertain, v_hat / v ~ chi2_nu / nu: the
     quantiles are those of (a + b X) nu / Y, Y ~ chi2_nu independent (the predictive distribution of
     a new sample variance judged against an estimated one, an F distribution when a = 0)."""
     from scipy.optimize import brentq
 
-    lam = np.asarray(lam, dtype=np.float64)
-    c1, c2, c3 = float(lam.sum()), float(np.sum(lam ** 2)), float(np.sum(lam ** 3))
+    c1, c2, c3 = (float(c) for c in cumulants)
     if not (c2 > 0 and c3 > 0):
         return [c1 for _ in probs]
     df = c2 ** 3 / c3 ** 2

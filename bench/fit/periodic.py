@@ -27,6 +27,8 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.stats import chi2
 
+from bench.fit.noisefloor import centred
+
 
 def _two_term_sf(q: np.ndarray, l1: np.ndarray, l2: np.ndarray) -> np.ndarray:
     """P(l1 chi2_1 + l2 chi2_1 > q) by Pearson's three-moment approximation (exact for l1 = l2)."""
@@ -54,8 +56,7 @@ def periodic_component(means: np.ndarray, index: np.ndarray, null_cov: np.ndarra
     tt = (idx - idx[0]) * block_s
     span = span_blocks * block_s
     yc = y - y.mean()
-    a = np.eye(n) - 1.0 / n
-    c = a @ np.asarray(null_cov, dtype=np.float64) @ a
+    c = centred(null_cov)
     ph = 2.0 * np.pi * np.outer(tt, ks / span)
     cs, sn = np.cos(ph), np.sin(ph)
     cs -= cs.mean(axis=0)
