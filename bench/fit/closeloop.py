@@ -15,14 +15,15 @@ Which decision uses which run:
    validation error is never made worse); its channel is not called explained.
 4. Noise floor (``bench.fit.noisefloor``) from the Allan variance of the final residuals (training
    run and the in-range validation part) at short taus, fitted with white, flicker and quantisation
-   terms, extrapolated to the std of 100-s means over a record as long as the validation run, with
-   its sampling interval.
+   terms, extrapolated to the std of 100-s means over the validation blocks judged, at their block
+   numbers (an out-of-range stretch or an outage keeps its length), plus the training coefficients'
+   error; its interval and limit carry the fitted noise level's own uncertainty.
 5. Verdict on the in-range validation part: ``explained`` (effects added, all generalised, std100
    within 1.2x of the floor or inside the floor's noise interval), ``partly_explained`` (added effects
    helped but structure remains or one did not generalise), ``no_effect_missing`` (nothing added and
    at the floor), ``unexplained_structure_remains`` (nothing added helps and the error is above the
-   floor); the structure left is described (whiteness, periodic with >= 2 periods in the record,
-   trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
+   floor); the structure left is described (whiteness; a periodic component only when significant
+   against the noise model, with >= 2 periods in the span and better than a cubic in time; trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
 """
 from __future__ import annotations
 

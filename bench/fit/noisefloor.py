@@ -35,6 +35,14 @@ flicker noise, where the former (M - 1) / B1 claimed 70 and made the interval to
 reported interval is the central 90 % of noise-only std100 values on that record; ``limit_dph`` is
 the one-sided (1 - ``LIMIT_P``) quantile, above which a std100 is not noise alone at the level the
 structure tests use.
+
+The verdict's floor (``NoiseModel.floor_over``) is that quadratic form over the blocks actually
+judged, at their block numbers (an out-of-range stretch or an outage keeps its length: flicker over
+a span, not over as many consecutive blocks), with the training coefficients' error as a second
+covariance (``coefficient_spread``); its tail by Pearson's three moments (two, Satterthwaite's, make
+it too light when a few slow components dominate), and the fitted noise level's own uncertainty
+(the Allan fit's coefficient covariance, ``fit_noise_model``) carried into the interval and the
+limit as a predictive (F-like) distribution.
 """
 from __future__ import annotations
 
@@ -251,6 +259,9 @@ def quadratic_form_quantiles(cumulants: tuple[float, float, float], probs,
 
     out = []
     for p in probs:
+        if sf(0.0) <= 1.0 - p:
+            out.append(0.0)
+            continue
         hi = max(a + b * chi2.ppf(p, df), c1)
         while sf(hi) > 1.0 - p:
             hi *= 2.0
