@@ -162,3 +162,23 @@ def test_floor_over_judged_blocks_keeps_the_span_of_a_gap_and_its_limit_holds_it
     assert np.mean(over) == pytest.approx(np.mean(stds ** 2), rel=0.12)
     assert np.mean(consecutive) < 0.9 * np.mean(stds ** 2)
     assert np.mean(stds > np.array(limits)) <= 0.03
+
+
+def test_flicker_is_seen_across_dropped_rows_through_block_means():
+    # a logger that drops a row every 200-400 s leaves stretches too short for Allan taus where
+    # flicker shows; the 100-s block means numbered by time reach them across the drops
+    rng = np.random.default_rng(9)
+    n = 40_000
+    t = np.arange(float(n))
+    keep = np.ones(n, dtype=bool)
+    drops = np.cumsum(rng.integers(200, 400, n // 150))
+    keep[drops[drops < n - 1]] = False
+    got = []
+    for _ in range(20):
+        x = _white_plus_flicker(rng, n, 0.2, 0.01)
+        model = fit_noise_model([(x[keep], 1.0, t[keep])])
+        got.append(model.coef[0.0] / 0.01 ** 2)
+        assert model.tau_max_s >= 800.0
+    got = np.array(got)
+    assert 0.8 < np.median(got) < 1.25, got
+    assert np.mean((got > 0.5) & (got < 1.6)) >= 0.8, got      # stretches alone: about half of them

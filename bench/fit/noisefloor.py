@@ -390,6 +390,42 @@ def contiguous_pieces(x: np.ndarray, dt: float, time_s: np.ndarray | None = None
     return out
 
 
+def _block_allan(x: np.ndarray, dt: float, time_s: np.ndarray | None, tau_max_s: float, reach_s: float):
+    """Allan variances at taus the contiguous stretches cannot reach, across their breaks: the
+    overlapping Allan variance of ``BLOCK_S`` means numbered by time (a block counts when it holds at
+    least 90 % of its samples; a tau-window counts when all its blocks do, so a missing row or an
+    outage removes the differences that span it, not the lags), at tau = BLOCK_S 2^j in
+    (``reach_s``, ``tau_max_s``].  Yields (tau, Allan variance, number of differences, edf per
+    ``MUS`` entry), the edf of the blocks' span scaled by the share of differences present."""
+    x = np.asarray(x, dtype=np.float64)
+    t = np.arange(len(x)) * dt if time_s is None else np.asarray(time_s, dtype=np.float64)
+    ok = np.isfinite(x) & np.isfinite(t)
+    if ok.sum() < 2 or BLOCK_S <= dt:
+        return
+    b = np.floor((t[ok] - t[ok][0]) / BLOCK_S).astype(np.int64)
+    cnt = np.bincount(b)
+    sums = np.bincount(b, weights=x[ok])
+    full = cnt >= 0.9 * BLOCK_S / dt
+    means = np.where(full, sums / np.maximum(cnt, 1), 0.0)
+    nb = len(cnt)
+    m = 1
+    while m * BLOCK_S <= tau_max_s and 4 * m <= nb:
+        tau = m * BLOCK_S
+        if tau > reach_s:
+            cs = np.concatenate([[0.0], np.cumsum(means)])
+            cf = np.concatenate([[0], np.cumsum(full.astype(np.int64))])
+            starts = np.arange(nb - 2 * m + 1)
+            good = (cf[starts + 2 * m] - cf[starts]) == 2 * m
+            if good.sum() >= 2:
+                a = (cs[starts + m] - cs[starts]) / m
+                c = (cs[starts + 2 * m] - cs[starts + m]) / m
+                d = (c - a)[good]
+                share = good.sum() / len(starts)
+                edf = np.array([allan_edf(nb, m, mu) for mu in MUS]) * share
+                yield tau, 0.5 * float(np.mean(d * d)), float(good.sum()), edf
+        m *= 2
+
+
 def allan_edf(n: np.ndarray, m: float, mu: float) -> np.ndarray:
     """Equivalent degrees of freedom of an overlapping Allan variance at tau = m samples from stretches
     of ``n`` samples, per noise type (the simple approximations of NIST SP 1065, Table 5, after Howe,
@@ -419,27 +455,33 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
     re-weighted passes.  The covariance of the fitted coefficients (non-negative ones held at zero)
     is kept: the floor carries it into its limit."""
     pooled: dict[float, list] = {}
+
+    def add(tau: float, v: float, k: float, edf: np.ndarray) -> None:
+        acc = pooled.setdefault(round(float(tau), 6), [0.0, 0.0, np.zeros(len(MUS))])
+        acc[0] += v * k
+        acc[1] += k
+        acc[2] += edf
+
     for item in residuals:
         x, dt = item[0], item[1]
         t = item[2] if len(item) > 2 else None
+        reach = 0.0
         for piece in contiguous_pieces(x, dt, t):
             if len(piece) < 16:
                 continue
             tmax = min(tau_max_s, len(piece) * dt / PIECE_TAUS)
             taus, avar, n = _oadev_octave(piece, dt, tmax)
             for tau, v, k in zip(taus, avar, n):
-                key = round(float(tau), 6)
-                acc = pooled.setdefault(key, [0.0, 0.0, [], dt])
-                acc[0] += v * k
-                acc[1] += k
-                acc[2].append(len(piece))
+                add(tau, v, k, np.array([allan_edf(len(piece), max(1.0, round(tau / dt)), mu) for mu in MUS]))
+                reach = max(reach, float(tau))
+        for tau, v, k, edf in _block_allan(x, dt, t, tau_max_s, reach):
+            add(tau, v, k, edf)
     if not pooled:
         raise ValueError("noise floor: the residual is too short for an Allan deviation")
     taus = np.array(sorted(pooled))
     avar = np.array([pooled[t][0] / pooled[t][1] for t in taus])
     A0 = np.column_stack([taus ** mu for mu in MUS])
-    edf_by_mu = np.array([[float(np.sum(allan_edf(np.array(pooled[t][2]), max(1.0, round(t / pooled[t][3])), mu)))
-                           for mu in MUS] for t in taus])
+    edf_by_mu = np.maximum(np.array([pooled[t][2] for t in taus]), 1.0)
     floor_v = np.maximum(avar, 1e-300)
     model_v = floor_v.copy()
     sol = np.zeros(len(MUS))
