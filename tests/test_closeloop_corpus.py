@@ -14,10 +14,6 @@ SEEDS = (1, 2, 3)
 # failure with its reason, every other case is a real test.  When the analysis improves, a known miss
 # that passes shows up as XPASS: remove it from this table.
 KNOWN_MISSES = {
-    "complete_strong_flicker": {2: "z: unexplained_structure_remains where no_effect_missing is right: the "
-                                   "validation run's own flicker draw (in-sample std100 0.048 against an "
-                                   "expected 0.041) plus the training coefficients' error give 0.0556, 1.29x "
-                                   "the floor with the coefficient spread (0.0433), above its 1 % limit 0.0533"},
     "effect_validation_colder": {1: "y: a gradient t1-t2 taken for a lag of t1 (the training run cannot tell "
                                     "them apart: delta-BIC margin 2, now named in ambiguous_with); "
                                     "partly_explained"},

@@ -15,14 +15,15 @@ Which decision uses which run:
    validation error is never made worse); its channel is not called explained.
 4. Noise floor (``bench.fit.noisefloor``) from the Allan variance of the final residuals (training
    run and the in-range validation part) at short taus, fitted with white, flicker and quantisation
-   terms, extrapolated to the std of 100-s means over a record as long as the validation run, with
-   its sampling interval.
+   terms, extrapolated to the std of 100-s means over the validation blocks judged, at their block
+   numbers (an out-of-range stretch or an outage keeps its length), plus the training coefficients'
+   error; its interval and limit carry the fitted noise level's own uncertainty.
 5. Verdict on the in-range validation part: ``explained`` (effects added, all generalised, std100
    within 1.2x of the floor or inside the floor's noise interval), ``partly_explained`` (added effects
    helped but structure remains or one did not generalise), ``no_effect_missing`` (nothing added and
    at the floor), ``unexplained_structure_remains`` (nothing added helps and the error is above the
-   floor); the structure left is described (whiteness, periodic with >= 2 periods in the record,
-   trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
+   floor); the structure left is described (whiteness; a periodic component only when significant
+   against the noise model, with >= 2 periods in the span and better than a cubic in time; trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability
-from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, coefficient_spread, fit_noise_model
+from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
@@ -85,11 +86,14 @@ class Design:
 # --------------------------------------------------------------------------------------------
 # structure tests on what is left
 
-def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: float) -> dict[str, Any]:
-    """Tests the 100-s means of a residual for leftover structure: whiteness (Ljung-Box), the
-    strongest periodic component with at least two periods in the record (Fisher's g test on the
-    periodogram) and a linear trend (HAC)."""
+def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: float,
+                       null_cov: np.ndarray | None = None) -> dict[str, Any]:
+    """Tests the 100-s means of a residual for leftover structure: whiteness (Ljung-Box), a periodic
+    component (``bench.fit.periodic``: significant against ``null_cov``, the noise model's covariance
+    of these block means -- white noise at the floor without it --, at least two periods in the span,
+    better than a cubic in time) and a linear trend (HAC)."""
     from bench.fit.metrics import window_means
+    from bench.fit.periodic import periodic_component
 
     means = window_means(time_s, residual, 100.0)
     n = len(means)
@@ -103,32 +107,19 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     out["std100_dph"] = s
     out["ratio_to_noise_floor"] = s / noise_floor if noise_floor > 0 else float("inf")
     out["ljung_box_p"] = ljung_box(centred, min(10, n // 5))[1]
-    spec = np.abs(np.fft.rfft(centred)) ** 2
-    spec = spec[2:]                         # k >= 2: at least two periods in the record
-    if len(spec) > 2:
-        k = int(np.argmax(spec))
-        g = spec[k] / spec.sum()
-        m = len(spec)
-        out["peak_p"] = float(min(1.0, m * (1 - g) ** (m - 1)))
-        tt = np.arange(n) * 100.0
-
-        def sine_fit(freq: float) -> tuple[float, float]:
-            basis = np.column_stack([np.cos(2 * np.pi * freq * tt), np.sin(2 * np.pi * freq * tt)])
-            coef, *_ = np.linalg.lstsq(basis, centred, rcond=None)
-            return float(np.sum((centred - basis @ coef) ** 2)), float(np.hypot(*coef))
-
-        from scipy.optimize import minimize_scalar
-        df = 1.0 / (n * 100.0)
-        f0 = (k + 2) * df
-        best = minimize_scalar(lambda f: sine_fit(f)[0], bounds=(max(f0 - df, 1.9 * df), f0 + df), method="bounded")
-        out["peak_period_s"] = float(1.0 / best.x)
-        out["peak_amplitude_dph"] = sine_fit(best.x)[1]
+    index = _judged_blocks(time_s, residual)
+    if null_cov is None or null_cov.shape != (n, n) or len(index) != n:
+        null_cov = (noise_floor ** 2 if noise_floor > 0 else float(np.var(means))) * np.eye(n)
+    if len(index) != n:
+        index = np.arange(n, dtype=np.float64)
+    out.update(periodic_component(means, index, null_cov, BLOCK_S))
     tt_h = np.arange(n) * 100.0 / 3600.0
     res = ols_hac(np.column_stack([np.ones(n), tt_h]), means)
     out["trend_dph_per_h"] = float(res.params[1])
     out["trend_p"] = float(res.pvalues[1])
     out["failed_tests"] = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"),
-                                                  ("trend", "trend_p")) if out.get(key, 1.0) < TEST_P]
+                                                  ("trend", "trend_p")) if out.get(key, 1.0) < TEST_P
+                           and (name != "periodic" or out.get("better_than_cubic", False))]
     return out
 
 
@@ -265,14 +256,19 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     # error the training noise put into the fitted coefficients (a model of the true form has it too)
     va_in = np.where(diag, r_va, np.nan)
     model = fit_noise_model([(r_tr, sample_period(t_tr), t_tr), (va_in, sample_period(t_va), t_va)])
-    n_in_blocks = int(np.sum(np.isfinite(block_means(t_va, {"r": va_in}, BLOCK_S).columns["r"])))
     spread = _coefficient_spread(model, problem, kept_t, stack(kept_t, design.validate, inputs_va),
                                  diag & np.isfinite(r_va), t_va)
-    floor_val = model.floor(max(n_in_blocks, 2) * BLOCK_S, spread=spread)
-    floor_tr = model.floor(t_tr[-1] - t_tr[0])
+    # the floor over the blocks actually judged (an out-of-range stretch or an outage keeps its lag)
+    idx_va, idx_tr = _judged_blocks(t_va, va_in), _judged_blocks(t_tr, r_tr)
+    floor_val = model.floor_over(idx_va, spread=spread)
+    floor_tr = model.floor_over(idx_tr)
     floor = floor_val["noise_floor_dph"]
-    structure = {"train": describe_structure(r_tr, t_tr, floor_tr["noise_floor_dph"]),
-                 "validation": describe_structure(va_in, t_va, floor)}
+    # the null of the periodic test: the noise model's covariance of the judged block means
+    null_va = block_covariance(model, idx_va)
+    if spread.block_cov is not None and spread.block_cov.shape == null_va.shape:
+        null_va = null_va + spread.block_cov
+    structure = {"train": describe_structure(r_tr, t_tr, floor_tr["noise_floor_dph"], block_covariance(model, idx_tr)),
+                 "validation": describe_structure(va_in, t_va, floor, null_va)}
     if structure["validation"].get("testable"):
         judged_on, judged_std, judged_floor = diag_label, structure["validation"]["std100_dph"], floor_val
     else:
@@ -301,10 +297,12 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     floor_doc = {**floor_val, "train_record": floor_tr, "noise_model": model.summary(),
                  "method": "Allan variance of the final residuals (train + in-range validation) fitted "
                            "with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
-                           "out of the floor) at taus <= %.0f s; expected std of 100-s means over the "
-                           "in-range validation record (Barnes B1) plus the spread the training noise puts "
-                           "into the fitted coefficients (B G B' under the same noise terms); 90 %% "
-                           "sampling interval" % model.tau_max_s}
+                           "out of the floor) at taus <= %.0f s, weighted by each tau's degrees of freedom; "
+                           "expected std of 100-s means over the in-range validation blocks at their "
+                           "lags (gaps keep their length) plus the spread the training noise puts into the "
+                           "fitted coefficients (B G B' under the same noise terms); interval and limit from "
+                           "that quadratic form's eigenvalues (Pearson three-moment chi-square) with the "
+                           "fitted noise level's own uncertainty; 90 %% sampling interval" % model.tau_max_s}
     report = {
         "declared_model": declared_name,
         "declared_terms": list(design.names),
@@ -336,6 +334,18 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     report["findings"] = _findings(report)
     report["_residuals"] = {"before": (r_tr0, r_va0), "after": (r_tr, r_va)}
     return report
+
+
+def _judged_blocks(time_s: np.ndarray, residual: np.ndarray) -> np.ndarray:
+    """The number, counted from the run's start, of every 100-s block the std of 100-s means of
+    ``residual`` uses (``metrics.window_means``: blocks of its finite samples), so that a stretch left
+    out keeps its length between the blocks either side."""
+    ok = np.isfinite(residual)
+    t = np.asarray(time_s, dtype=np.float64)[ok]
+    if len(t) == 0:
+        return np.zeros(0)
+    tb = block_means(t, {"t": t}, BLOCK_S, min_fraction=0.5).columns["t"]
+    return np.floor((tb - t[0]) / BLOCK_S + 0.5)
 
 
 def _coefficient_spread(model, problem: SearchProblem, kept, X_val: np.ndarray, judged: np.ndarray,

@@ -35,6 +35,14 @@ flicker noise, where the former (M - 1) / B1 claimed 70 and made the interval to
 reported interval is the central 90 % of noise-only std100 values on that record; ``limit_dph`` is
 the one-sided (1 - ``LIMIT_P``) quantile, above which a std100 is not noise alone at the level the
 structure tests use.
+
+The verdict's floor (``NoiseModel.floor_over``) is that quadratic form over the blocks actually
+judged, at their block numbers (an out-of-range stretch or an outage keeps its length: flicker over
+a span, not over as many consecutive blocks), with the training coefficients' error as a second
+covariance (``coefficient_spread``); its tail by Pearson's three moments (two, Satterthwaite's, make
+it too light when a few slow components dominate), and the fitted noise level's own uncertainty
+(the Allan fit's coefficient covariance, ``fit_noise_model``) carried into the interval and the
+limit as a predictive (F-like) distribution.
 """
 from __future__ import annotations
 
@@ -108,6 +116,7 @@ class NoiseModel:
     taus: np.ndarray
     adev: np.ndarray
     tau_max_s: float
+    cov: np.ndarray | None = None      # covariance of the h_mu (in ``MUS`` order) from the fit
 
     def allan_var(self, tau: float, mus=NOISE_MUS) -> float:
         return float(sum(self.coef.get(mu, 0.0) * tau ** mu for mu in mus))
@@ -140,6 +149,60 @@ class NoiseModel:
                 "blocks": int(m), "adev100_dph": float(np.sqrt(max(allan_100, 0.0))),
                 "flicker_share": float(parts.get(0.0, 0.0) / var)}
 
+    def floor_over(self, block_index: np.ndarray, spread: "CoefficientSpread | None" = None,
+                   mus: tuple[float, ...] = NOISE_MUS, block_s: float = BLOCK_S) -> dict[str, Any]:
+        """``floor`` for the blocks actually judged: ``block_index`` numbers them from the run's start
+        (a stretch out of range or a logger outage keeps its lag, so flicker and random walk over the
+        span they cover count, not over as many consecutive blocks).  The judged std of block means is
+        the root of a Gaussian quadratic form: its covariance K = A (G + W) A / (M - 1) (G the noise
+        terms' covariance of the block means at their lags, W = ``spread.block_cov`` the training
+        coefficients' error, A the centring).  Its mean is tr K; its quantiles come from tr K, tr K^2 and
+        tr K^3 by Pearson's three-moment chi-square approximation (Satterthwaite's two moments make the
+        upper tail too light when a few slow components dominate), widened by the uncertainty of the
+        fitted noise level (``floor_edf``)."""
+        idx = np.rint(np.asarray(block_index, dtype=np.float64)).astype(np.int64)
+        m = len(idx)
+        if m < 2:
+            return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
+                    "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
+        noise = centred(block_covariance(self, idx, block_s, mus))
+        w = spread.block_cov if spread is not None and spread.block_cov is not None else None
+        if w is not None and w.shape != (m, m):
+            w = None
+        k = noise + (centred(w) if w is not None else 0.0)
+        k = 0.5 * (k + k.T) / (m - 1)
+        c1, c2, c3 = float(np.trace(k)), float(np.sum(k * k)), float(np.sum((k @ k) * k))
+        var, noise_var = c1, float(np.trace(noise)) / (m - 1)
+        if w is None and spread is not None and spread.variance > 0:
+            var += spread.variance             # no block covariance: its expected variance only
+        if not var > 0 or not c1 > 0:
+            return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
+                    "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
+        parts = {mu: float(np.trace(centred(block_covariance(self, idx, block_s, (mu,))))) / (m - 1) for mu in mus}
+        model_edf = self.floor_edf(parts)
+        r = var / c1                           # the fallback above scales the form as a whole
+        lo, hi, limit = quadratic_form_quantiles((var, c2 * r * r, c3 * r ** 3),
+                                                 ((1 - INTERVAL) / 2, (1 + INTERVAL) / 2, 1 - LIMIT_P), model_edf)
+        return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(np.sqrt(lo)), float(np.sqrt(hi))],
+                "limit_dph": float(np.sqrt(limit)), "edf": float(c1 * c1 / c2) if c2 > 0 else float(m - 1),
+                "noise_only_dph": float(np.sqrt(noise_var)),
+                "coefficient_spread_dph": float(np.sqrt(max(var - noise_var, 0.0))),
+                "blocks": int(m), "span_blocks": int(idx.max() - idx.min() + 1),
+                "adev100_dph": float(np.sqrt(max(self.allan_var(block_s, mus), 0.0))),
+                "flicker_share": float(parts.get(0.0, 0.0) / var),
+                "random_walk_share": float(parts.get(1.0, 0.0) / var),
+                "noise_model_edf": float(model_edf)}
+
+    def floor_edf(self, parts: dict[float, float]) -> float:
+        """Degrees of freedom of the fitted noise variance sum_mu parts[mu] (each part proportional to
+        its h_mu): 2 v^2 / Var(v) from the fit's coefficient covariance; inf without one."""
+        if self.cov is None:
+            return float("inf")
+        g = np.array([parts.get(mu, 0.0) / self.coef[mu] if self.coef.get(mu, 0.0) > 0 else 0.0 for mu in MUS])
+        v = float(sum(parts.values()))
+        var_v = float(g @ self.cov @ g)
+        return 2.0 * v * v / var_v if var_v > 0 and v > 0 else float("inf")
+
     def summary(self) -> dict[str, Any]:
         h = self.coef
         return {"white_dph_at_1s": float(np.sqrt(max(h.get(-1.0, 0.0), 0.0))),
@@ -155,14 +218,60 @@ class CoefficientSpread:
     """What the training noise adds to a validation std of block means through the fitted
     coefficients: a model of the true form, fitted on a noisy run, still errs by X_val (b - beta).
     ``variance`` is the expected contribution to the sample variance of the validation block means,
-    ``edf`` its Satterthwaite degrees of freedom (at most the number of coefficients)."""
+    ``edf`` its Satterthwaite degrees of freedom (at most the number of coefficients); ``block_cov``
+    the covariance V Sigma V' of that error over the validation blocks judged (in their order)."""
 
     variance: float
     edf: float
+    block_cov: np.ndarray | None = None
+
+
+def centred(g: np.ndarray) -> np.ndarray:
+    """A g A with A = I - 11'/m (the covariance of centred values), in O(m^2)."""
+    g = np.asarray(g, dtype=np.float64)
+    return g - g.mean(axis=0, keepdims=True) - g.mean(axis=1, keepdims=True) + g.mean()
+
+
+def quadratic_form_quantiles(cumulants: tuple[float, float, float], probs,
+                             scale_edf: float = float("inf")) -> list[float]:
+    """Quantiles of sum_i lam_i chi2_1 (lam >= 0, the eigenvalues of a covariance K; ``cumulants`` =
+    (c1, c2, c3), c_j = sum lam^j = tr K^j) by Pearson's three-moment approximation: a shifted, scaled
+    chi-square a + b X, X ~ chi2_l, with the form's mean c1, variance 2 c2 and skewness
+    (l = c2^3 / c3^2: it follows the largest eigenvalues).  With ``scale_edf`` = nu
+    finite, the lam are an estimate whose scale is itself uncertain, v_hat / v ~ chi2_nu / nu: the
+    quantiles are those of (a + b X) nu / Y, Y ~ chi2_nu independent (the predictive distribution of
+    a new sample variance judged against an estimated one, an F distribution when a = 0)."""
+    from scipy.optimize import brentq
+
+    c1, c2, c3 = (float(c) for c in cumulants)
+    if not (c2 > 0 and c3 > 0):
+        return [c1 for _ in probs]
+    df = c2 ** 3 / c3 ** 2
+    b = np.sqrt(c2 / df)
+    a = c1 - b * df
+    if not np.isfinite(scale_edf) or scale_edf <= 0:
+        return [max(0.0, a + b * chi2.ppf(p, df)) for p in probs]
+    # Y on a grid of its own quantiles (midpoints): P(Q > q) = E_Y[P(X > (q Y / nu - a) / b)]
+    y = chi2.ppf((np.arange(400) + 0.5) / 400.0, scale_edf) / scale_edf
+
+    def sf(q: float) -> float:
+        return float(np.mean(chi2.sf(np.maximum((q * y - a) / b, 0.0), df)))
+
+    out = []
+    for p in probs:
+        if sf(0.0) <= 1.0 - p:
+            out.append(0.0)
+            continue
+        hi = max(a + b * chi2.ppf(p, df), c1)
+        while sf(hi) > 1.0 - p:
+            hi *= 2.0
+        out.append(float(brentq(lambda q: sf(q) - (1.0 - p), 0.0, hi, xtol=1e-12 * hi)))
+    return out
 
 
 def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index: np.ndarray,
-                       validate_blocks: np.ndarray, block_s: float = BLOCK_S) -> CoefficientSpread:
+                       validate_blocks: np.ndarray, block_s: float = BLOCK_S,
+                       mus: tuple[float, ...] = NOISE_MUS) -> CoefficientSpread:
     """Under the fitted noise, the training block means' covariance is G (g(|i-j|) = -D(|i-j|)/2 from
     each power law's structure function, up to a constant the intercept absorbs), so the least-squares
     coefficients b = B y (B = pinv(X)) spread with Sigma = B G B'.  With S the covariance of the
@@ -178,7 +287,7 @@ def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index:
     V = V[np.all(np.isfinite(V), axis=1)]
     if len(X) <= X.shape[1] or len(V) < 2:
         return CoefficientSpread(0.0, 1.0)
-    g = block_covariance(model, idx, block_s)
+    g = block_covariance(model, idx, block_s, mus)
     scale = np.sqrt(np.mean(X ** 2, axis=0))
     scale[~(scale > 0)] = 1.0
     B = np.linalg.pinv(X / scale) / scale[:, None]
@@ -189,10 +298,11 @@ def coefficient_spread(model: NoiseModel, train_blocks: np.ndarray, block_index:
     e2 = float(np.trace(P @ P))
     if not (e > 0 and e2 > 0):
         return CoefficientSpread(0.0, 1.0)
-    return CoefficientSpread(e, max(1.0, e * e / e2))
+    return CoefficientSpread(e, max(1.0, e * e / e2), Vc @ sigma @ Vc.T)
 
 
-def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float = BLOCK_S) -> np.ndarray:
+def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float = BLOCK_S,
+                     mus: tuple[float, ...] = NOISE_MUS) -> np.ndarray:
     """The generalised covariance G of block means under the fitted noise terms (``NOISE_MUS``):
     g(|i-j|) = -D(|i-j|) / 2 from each power law's structure function, D(1) = 2 AVAR(block_s), at
     the blocks' numbers ``block_index`` (an outage keeps its lag).  Defined up to a constant: only
@@ -200,7 +310,7 @@ def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float 
     idx = np.rint(np.asarray(block_index, dtype=np.float64)).astype(np.int64)
     lags = np.abs(idx[:, None] - idx[None, :])
     per_lag = np.zeros(int(lags.max()) + 1 if lags.size else 0)
-    for mu in NOISE_MUS:
+    for mu in mus:
         avar = model.coef.get(mu, 0.0) * block_s ** mu
         if avar > 0:
             per_lag -= avar * _structure_ratio(np.arange(len(per_lag)), mu)
@@ -280,35 +390,116 @@ def contiguous_pieces(x: np.ndarray, dt: float, time_s: np.ndarray | None = None
     return out
 
 
+def _block_allan(x: np.ndarray, dt: float, time_s: np.ndarray | None, tau_max_s: float, reach_s: float):
+    """Allan variances at taus the contiguous stretches cannot reach, across their breaks: the
+    overlapping Allan variance of ``BLOCK_S`` means numbered by time (a block counts when it holds at
+    least 90 % of its samples; a tau-window counts when all its blocks do, so a missing row or an
+    outage removes the differences that span it, not the lags), at tau = BLOCK_S 2^j in
+    (``reach_s``, ``tau_max_s``].  Yields (tau, Allan variance, number of differences, edf per
+    ``MUS`` entry), the edf of the blocks' span scaled by the share of differences present."""
+    x = np.asarray(x, dtype=np.float64)
+    t = np.arange(len(x)) * dt if time_s is None else np.asarray(time_s, dtype=np.float64)
+    ok = np.isfinite(x) & np.isfinite(t)
+    if ok.sum() < 2 or BLOCK_S <= dt:
+        return
+    b = np.floor((t[ok] - t[ok][0]) / BLOCK_S).astype(np.int64)
+    cnt = np.bincount(b)
+    sums = np.bincount(b, weights=x[ok])
+    full = cnt >= 0.9 * BLOCK_S / dt
+    means = np.where(full, sums / np.maximum(cnt, 1), 0.0)
+    nb = len(cnt)
+    m = 1
+    while m * BLOCK_S <= tau_max_s and 4 * m <= nb:
+        tau = m * BLOCK_S
+        if tau > reach_s:
+            cs = np.concatenate([[0.0], np.cumsum(means)])
+            cf = np.concatenate([[0], np.cumsum(full.astype(np.int64))])
+            starts = np.arange(nb - 2 * m + 1)
+            good = (cf[starts + 2 * m] - cf[starts]) == 2 * m
+            if good.sum() >= 2:
+                a = (cs[starts + m] - cs[starts]) / m
+                c = (cs[starts + 2 * m] - cs[starts + m]) / m
+                d = (c - a)[good]
+                share = good.sum() / len(starts)
+                edf = np.array([allan_edf(nb, m, mu) for mu in MUS]) * share
+                yield tau, 0.5 * float(np.mean(d * d)), float(good.sum()), edf
+        m *= 2
+
+
+def allan_edf(n: np.ndarray, m: float, mu: float) -> np.ndarray:
+    """Equivalent degrees of freedom of an overlapping Allan variance at tau = m samples from stretches
+    of ``n`` samples, per noise type (the simple approximations of NIST SP 1065, Table 5, after Howe,
+    Allan and Barnes): white rate (also used for quantisation), flicker rate, random-walk rate (also
+    used for the drift term)."""
+    n = np.asarray(n, dtype=np.float64)
+    m = float(m)
+    if mu <= -1.0:
+        e = (3.0 * (n - 1) / (2.0 * m) - 2.0 * (n - 2) / n) * 4.0 * m * m / (4.0 * m * m + 5.0)
+    elif mu == 0.0:
+        e = 2.0 * (n - 2) / (2.3 * n - 4.9) if m == 1 else 5.0 * n * n / (4.0 * m * (n + 3.0 * m))
+    else:
+        e = (n - 2) / m * ((n - 1) ** 2 - 3.0 * m * (n - 1) + 4.0 * m * m) / np.maximum((n - 3) ** 2, 1.0)
+    return np.maximum(e, 1.0)
+
+
 def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> NoiseModel:
     """Fit the power laws to the pooled Allan variance of one or more residual series, each given as
     (values, sample period) or (values, sample period, time_s).  Each series is cut into its
     contiguous finite stretches (``contiguous_pieces``); stretches are pooled per tau, weighted by
-    their number of terms."""
-    pooled: dict[float, list[float]] = {}
+    their number of terms.
+
+    Weights: each tau's Allan variance is weighted by its precision, edf / (2 sigma^4), with sigma^2
+    the fitted model's value (not the observed one: weighting by the inverse of the observed value
+    favours the taus that came out low and biases the flicker level down) and edf summed over the
+    stretches (``allan_edf``, mixed by each noise type's share of the model at that tau); a few
+    re-weighted passes.  The covariance of the fitted coefficients (non-negative ones held at zero)
+    is kept: the floor carries it into its limit."""
+    pooled: dict[float, list] = {}
+
+    def add(tau: float, v: float, k: float, edf: np.ndarray) -> None:
+        acc = pooled.setdefault(round(float(tau), 6), [0.0, 0.0, np.zeros(len(MUS))])
+        acc[0] += v * k
+        acc[1] += k
+        acc[2] += edf
+
     for item in residuals:
         x, dt = item[0], item[1]
         t = item[2] if len(item) > 2 else None
+        reach = 0.0
         for piece in contiguous_pieces(x, dt, t):
             if len(piece) < 16:
                 continue
             tmax = min(tau_max_s, len(piece) * dt / PIECE_TAUS)
             taus, avar, n = _oadev_octave(piece, dt, tmax)
             for tau, v, k in zip(taus, avar, n):
-                key = round(float(tau), 6)
-                acc = pooled.setdefault(key, [0.0, 0.0])
-                acc[0] += v * k
-                acc[1] += k
+                add(tau, v, k, np.array([allan_edf(len(piece), max(1.0, round(tau / dt)), mu) for mu in MUS]))
+                reach = max(reach, float(tau))
+        for tau, v, k, edf in _block_allan(x, dt, t, tau_max_s, reach):
+            add(tau, v, k, edf)
     if not pooled:
         raise ValueError("noise floor: the residual is too short for an Allan deviation")
     taus = np.array(sorted(pooled))
     avar = np.array([pooled[t][0] / pooled[t][1] for t in taus])
-    counts = np.array([pooled[t][1] for t in taus])
-    # relative least squares: each tau weighted by sqrt(terms) / sigma^2 (its relative precision)
-    w = np.sqrt(np.maximum(counts, 1.0)) / np.maximum(avar, 1e-300)
-    A = np.column_stack([taus ** mu for mu in MUS]) * w[:, None]
-    scale = np.sqrt(np.sum(A ** 2, axis=0))
-    scale[scale == 0] = 1.0
-    sol, _ = nnls(A / scale, avar * w)
-    coef = {mu: float(c) for mu, c in zip(MUS, sol / scale)}
-    return NoiseModel(coef=coef, taus=taus, adev=np.sqrt(avar), tau_max_s=float(taus[-1]))
+    A0 = np.column_stack([taus ** mu for mu in MUS])
+    edf_by_mu = np.maximum(np.array([pooled[t][2] for t in taus]), 1.0)
+    floor_v = np.maximum(avar, 1e-300)
+    model_v = floor_v.copy()
+    sol = np.zeros(len(MUS))
+    for _ in range(4):
+        share = np.where(A0 * sol > 0, A0 * sol, 0.0)
+        share = share / share.sum(axis=1, keepdims=True) if np.any(sol > 0) else np.full_like(A0, 1.0 / len(MUS))
+        edf = 1.0 / np.sum(share / edf_by_mu, axis=1)
+        w = np.sqrt(edf / 2.0) / np.maximum(model_v, 1e-300)
+        A = A0 * w[:, None]
+        scale = np.sqrt(np.sum(A ** 2, axis=0))
+        scale[scale == 0] = 1.0
+        sol_s, _ = nnls(A / scale, avar * w)
+        sol = sol_s / scale
+        model_v = np.maximum(A0 @ sol, 1e-3 * floor_v)
+    active = sol > 0
+    cov = np.zeros((len(MUS), len(MUS)))
+    if active.any():
+        Aa = (A0 * w[:, None])[:, active]
+        cov[np.ix_(active, active)] = np.linalg.pinv(Aa.T @ Aa)
+    coef = {mu: float(c) for mu, c in zip(MUS, sol)}
+    return NoiseModel(coef=coef, taus=taus, adev=np.sqrt(avar), tau_max_s=float(taus[-1]), cov=cov)

@@ -1,0 +1,69 @@
+"""The periodic test of close-the-loop's structure description: a period is claimed only when the
+peak is significant against the residual's own noise (white + flicker, not white alone), at least two
+periods fit in the span, and a sine beats a cubic in time."""
+from __future__ import annotations
+
+import numpy as np
+
+from bench.fit.closeloop import _judged_blocks, describe_structure
+from bench.fit.noisefloor import block_covariance, fit_noise_model
+
+
+def _flicker(rng, n: int) -> np.ndarray:
+    f = np.fft.rfftfreq(2 * n, 1.0)
+    shape = np.zeros_like(f)
+    shape[1:] = 1.0 / np.sqrt(f[1:])
+    x = np.fft.irfft((rng.normal(size=len(f)) + 1j * rng.normal(size=len(f))) * shape)[:n]
+    return x / np.std(x)
+
+
+def test_a_wave_longer_than_half_the_record_is_not_a_period():
+    # a 5000-s sine in a 6000-s record: far above the noise, but less than two periods fit and a cubic
+    # in time describes it as well; it must not be reported as a periodic component
+    rng = np.random.default_rng(1)
+    t = np.arange(6000.0)
+    for phase in (0.0, 1.0, 2.0):
+        r = 0.05 * np.sin(2 * np.pi * t / 5000.0 + phase) + rng.normal(0, 0.05, len(t))
+        st = describe_structure(r, t, 0.005)
+        assert "periodic" not in st["failed_tests"], st
+        assert not st.get("better_than_cubic", False) or st["peak_p"] >= 0.01, st
+
+
+def test_a_resolved_period_is_found_with_its_period():
+    rng = np.random.default_rng(2)
+    t = np.arange(6000.0)
+    r = 0.02 * np.sin(2 * np.pi * t / 1500.0) + rng.normal(0, 0.05, len(t))
+    st = describe_structure(r, t, 0.005)
+    assert "periodic" in st["failed_tests"], st
+    assert abs(st["peak_period_s"] - 1500.0) / 1500.0 < 0.05
+    assert 0.015 < st["peak_amplitude_dph"] < 0.025
+
+
+def test_a_period_across_an_outage_keeps_the_outage_length():
+    # two stretches of a 1200-s sine with 2000 s missing between them: block numbers keep the lag,
+    # so the period is found (joined end to end the phase would jump)
+    rng = np.random.default_rng(3)
+    t = np.concatenate([np.arange(0.0, 5000.0), np.arange(7000.0, 12000.0)])
+    r = 0.02 * np.sin(2 * np.pi * t / 1200.0) + rng.normal(0, 0.05, len(t))
+    st = describe_structure(r, t, 0.005)
+    assert "periodic" in st["failed_tests"], st
+    assert abs(st["peak_period_s"] - 1200.0) / 1200.0 < 0.03
+
+
+def test_flicker_noise_alone_is_not_periodic_against_its_own_noise_model():
+    # white + strong flicker, nothing else: against a white null (the floor alone) the red low
+    # frequencies look like a period far more often than the 1 % level; against the noise model's
+    # covariance of the block means they do not
+    rng = np.random.default_rng(4)
+    n = 20_000
+    t = np.arange(float(n))
+    red_null, white_null = [], []
+    for _ in range(60):
+        x = rng.normal(0, 0.1, n) + 0.02 * _flicker(rng, n)
+        model = fit_noise_model([(x - x.mean(), 1.0, t)])
+        idx = _judged_blocks(t, x)
+        floor = model.floor_over(idx)["noise_floor_dph"]
+        red_null.append("periodic" in describe_structure(x, t, floor, block_covariance(model, idx))["failed_tests"])
+        white_null.append(describe_structure(x, t, floor).get("peak_p", 1.0) < 0.01)
+    assert np.mean(red_null) <= 0.05, np.mean(red_null)
+    assert np.mean(white_null) > 2 * max(np.mean(red_null), 0.02), (np.mean(white_null), np.mean(red_null))
