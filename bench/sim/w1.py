@@ -205,15 +205,25 @@ class W1TreeSimulator(BackgroundLoop):
             now = self.clock.now()
             self.source.advance_to(now)
             temps = self.source.probe_temperatures()
+            present = self._present()
             for name in self.probes:
                 if name not in temps and self.faults.active(name) is None:
                     raise KeyError(f"probe source has no temperature for position {name!r} "
                                    f"(has {sorted(temps)})")
-                self._write_probe(name, temps.get(name))
+                self._write_probe(name, temps.get(name), present)
             self.updates += 1
             self.last_update_t = now
 
-    def _write_probe(self, name: str, celsius: float | None) -> None:
+    def _present(self) -> set[str] | None:
+        """The names of the device directories in the tree now (one listing for every probe; None when the
+        root itself is gone): a file taken away from outside is written again at the next conversion."""
+        try:
+            with os.scandir(self.root) as entries:
+                return {e.name for e in entries}
+        except FileNotFoundError:
+            return None
+
+    def _write_probe(self, name: str, celsius: float | None, present: set[str] | None) -> None:
         fault = self.faults.active(name)
         if fault == FAULT_VANISHED:
             directory = self.device_dir(name)
@@ -225,13 +235,14 @@ class W1TreeSimulator(BackgroundLoop):
         if current is None:
             current = good_scratchpad(celsius, self.resolution_bits)
         read = (current, self._retained[name])
-        if self._last_read.get(name) == read and name in self._written and os.path.isdir(self._device_dir_str(name)):
+        here = present is not None and FAMILY_PREFIX + self.probes[name] in present
+        if here and self._last_read.get(name) == read and name in self._written:
             return              # the same conversion result as the files already show
         directory = self._device_dir_str(name)
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
-        present = os.path.isdir(directory)
+        present = here and os.path.isdir(directory)
         if self._written.get(name) == text and present:
             self._last_read[name] = read
             return              # same conversion result: the files already say exactly this
