@@ -184,11 +184,11 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
              bench_state=None) -> str:
     """Run (``plan`` given) or resume ``run_id`` on the real drivers; returns the engine's final status."""
     from bench.engine import Engine, QueueControl
-    from bench.engine.factory import build_devices, close_devices, make_fit_hook
+    from bench.engine.factory import build_devices, close_devices, make_fit_hook, writer_options_for
     from bench.engine.sqlstore import SqlRunStore, process_name
 
     store = SqlRunStore(db, geometry=config.turntable.geometry, frame_kind=config.gyro.frame,
-                        nominal_rate_hz=config.gyro.data_rate_hz)
+                        nominal_rate_hz=config.gyro.data_rate_hz, writer_options=writer_options_for(clock))
     owner = process_name()
     devices = build_devices(config, clock)
     control = QueueControl()
