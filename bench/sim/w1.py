@@ -165,6 +165,8 @@ class W1TreeSimulator(BackgroundLoop):
         self._last_read: dict[str, tuple[bytes, bytes]] = {}   # (scratchpad, retained) behind that text
         self._lock = threading.Lock()
         self._dirs: dict[str, str] = {}              # device directory per probe (checked every instant)
+        self._root_key: tuple[int, int, int] | None = None   # the root's inode, links, mtime when listed
+        self._listing: set[str] = set()
 
     def device_dir(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}"
@@ -215,13 +217,20 @@ class W1TreeSimulator(BackgroundLoop):
             self.last_update_t = now
 
     def _present(self) -> set[str] | None:
-        """The names of the device directories in the tree now (one listing for every probe; None when the
-        root itself is gone): a file taken away from outside is written again at the next conversion."""
+        """The names of the device directories in the tree now (None when the root itself is gone): a
+        directory taken away from outside is written again at the next conversion.  Listed again only when
+        the root changed (its link count and modification time move with every directory added or removed):
+        one ``stat`` per conversion for every probe."""
         try:
-            with os.scandir(self.root) as entries:
-                return {e.name for e in entries}
+            st = os.stat(self.root)
+            key = (st.st_ino, st.st_nlink, st.st_mtime_ns)
+            if key != self._root_key:
+                self._listing = set(os.listdir(self.root))
+                self._root_key = key
         except FileNotFoundError:
+            self._root_key = None
             return None
+        return self._listing
 
     def _write_probe(self, name: str, celsius: float | None, present: set[str] | None) -> None:
         fault = self.faults.active(name)
