@@ -1,6 +1,7 @@
 """DS18B20 w1 sysfs format: bytes, CRC-8, t= with C semantics, the simulated tree and its timing."""
 from __future__ import annotations
 
+import shutil
 import time
 
 import pytest
@@ -139,3 +140,24 @@ def test_same_text_is_not_parsed_again_but_counted_again(tmp_path, monkeypatch):
     assert arr.good_reads["t1"] == 2 and len(parsed) == 2
     path.write_text("garbage\n")
     assert arr.read_one("t1").fault.startswith(f"{ds18b20.FAULT_MALFORMED}: {path}: w1_slave has 1 line")
+
+
+def test_a_tree_removed_from_outside_is_written_again_at_the_next_conversion(tmp_path):
+    from bench.clock import LockstepClock
+
+    clock = LockstepClock(1000.0, pace=None)
+    source = TableSource({"t1": 21.5, "t2": 22.0})
+    root = tmp_path / "w1"
+    sim = W1TreeSimulator(source, clock, root, PROBES)
+    sim.start()
+    clock.serve("w1", sim.serve)
+    clock.advance_to(1002.0)
+    d1 = root / "28-0123456789ab"
+    text = (d1 / "w1_slave").read_text()
+    # right after a conversion (the same timestamp tick as the tree's last change) and later, the same
+    # temperatures: the files are only written because they are gone
+    for gone in (d1, d1, root):
+        shutil.rmtree(gone)
+        clock.advance_to(clock.now() + 2.0)
+        assert (d1 / "w1_slave").read_text() == text
+        assert (root / "28-00000a1b2c3d" / "w1_slave").exists()

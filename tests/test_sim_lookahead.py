@@ -96,3 +96,24 @@ def test_a_snapshot_keeps_the_block_ahead_and_changes_nothing_served():
     for snap in snaps:
         state = pickle.loads(zlib.decompress(base64.b64decode(snap["state"])))
         assert state["physics"]["_state"].t == snap["t"]
+
+
+def test_sample_rows_are_the_per_element_conversion():
+    from bench.sim.physics import GyroSample, Outputs, SampleRows
+
+    rng = np.random.default_rng(5)
+    n = 40
+    rate = rng.normal(0.0, 5e4, (n, 3))
+    rate[3, 1] = np.nan
+    powered = rng.random(n) > 0.3
+    out = Outputs(times=np.arange(n, dtype=float), rate_dph=rate, bias_dph=rate, accel_g=rng.normal(0, 1, (n, 3)),
+                  sensor_c=rng.normal(25, 10, n), probes_c={}, freq_hz=rng.normal(5e3, 1, (n, 3)),
+                  valid=powered & (rng.random(n) > 0.5), powered=powered, trajectory=None)
+    rows = SampleRows(out)
+    for k in range(n):
+        on = bool(out.powered[k])
+        want = GyroSample(tuple(float(v) / 3600.0 for v in out.rate_dph[k]) if on else (0.0, 0.0, 0.0),
+                          tuple(float(v) for v in out.accel_g[k]), float(out.sensor_c[k]),
+                          tuple(float(v) for v in out.freq_hz[k]), bool(out.valid[k]))
+        got = rows[k]
+        assert pickle.dumps(got) == pickle.dumps(want)        # bit for bit (NaN included), same types

@@ -40,6 +40,7 @@ Database: ``--db URL``, else ``$BENCH_DATABASE_URL``, else the SQLite file ``var
 """
 from __future__ import annotations
 
+import gc
 import json
 import signal
 import sys
@@ -184,11 +185,11 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
              bench_state=None) -> str:
     """Run (``plan`` given) or resume ``run_id`` on the real drivers; returns the engine's final status."""
     from bench.engine import Engine, QueueControl
-    from bench.engine.factory import build_devices, close_devices, make_fit_hook
+    from bench.engine.factory import build_devices, close_devices, make_fit_hook, writer_options_for
     from bench.engine.sqlstore import SqlRunStore, process_name
 
     store = SqlRunStore(db, geometry=config.turntable.geometry, frame_kind=config.gyro.frame,
-                        nominal_rate_hz=config.gyro.data_rate_hz)
+                        nominal_rate_hz=config.gyro.data_rate_hz, writer_options=writer_options_for(clock))
     owner = process_name()
     devices = build_devices(config, clock)
     control = QueueControl()
@@ -203,6 +204,7 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
                                         name="progress"))
     for t in threads:
         t.start()
+    _settle_heap()
     try:
         with _Signals(control):
             if plan is not None:
@@ -219,6 +221,16 @@ def _execute(db, run_id: int, config, clock, engine_config, *, plan=None, show_p
             for problem in close_devices(devices):
                 typer.secho(f"warning: closing {problem}", err=True, fg=typer.colors.YELLOW)
     return status
+
+
+def _settle_heap() -> None:
+    """Before a run: what this process built so far (modules, the drivers, a simulated bench) lives as long
+    as the run, so it leaves the garbage collector's generations (``gc.freeze``).  A run allocates at every
+    bench instant objects that live a few instants (frames waiting for the database), which reach the oldest
+    generation; each full collection then walks only the objects made during the run, not the whole heap
+    (on an eight-gyro campaign the full collections cost a tenth of the process's time otherwise)."""
+    gc.collect()
+    gc.freeze()
 
 
 def _announce(run_id: int, as_json: bool) -> None:

@@ -213,7 +213,7 @@ class GyroSerialLink(BackgroundLoop):
             deadline = time.monotonic() + self.receive_wait_s
             while self._rx_bytes < sent["bytes"]:
                 try:
-                    data = port.read(sent["bytes"] - self._rx_bytes)
+                    data = _read_waiting(port, sent["bytes"] - self._rx_bytes)
                 except (serial.SerialException, OSError, AttributeError, TypeError) as exc:
                     self.last_error = f"{type(exc).__name__}: {exc}"
                     self._lost(t)
@@ -380,3 +380,20 @@ class GyroSerialLink(BackgroundLoop):
         rate = self._in_config_mode(ask, timeout_s)
         self._rate_hz = float(rate)
         return rate
+
+
+def _read_waiting(port: serial.SerialBase, size: int) -> bytes:
+    """Lockstep: up to ``size`` bytes of the line, for bytes the simulator has already written.  On a TCP
+    line (pyserial's ``socket://``, a non-blocking socket) the socket is read at once when they are there:
+    pyserial's ``read`` asks ``select`` first, a system call per gyro per bench instant; bytes not there yet
+    (and any other port) go through ``port.read``, which waits for them."""
+    sock = getattr(port, "_socket", None)
+    if sock is None:
+        return port.read(size)
+    try:
+        data = sock.recv(size)
+    except (BlockingIOError, InterruptedError):
+        return port.read(size)
+    if not data:
+        raise serial.SerialException("socket disconnected")
+    return data

@@ -13,6 +13,14 @@ hold at any speed; its loop ticks every 2 s (the probe period) in soaks too.  An
 samples are late when the host is slow, which the run's ``sampling`` summary shows.  (``bench sim up``
 in another process is in lockstep too: the engine's process drives its clock, ``bench.clocklink``.)
 
+``writer_options_for(clock)``: the frame writers' settings (``bench.storage.FrameWriter``).  Each run's writer
+commits every half wall second by default; on a lockstep clock running faster than the wall (``--speed max``
+or a pace above x1) that is minutes of bench time either way, and with a writer per gyro unit (nine on an
+eight-gyro run, each commit a synchronised write of the database journal) the commits cost more than the
+rows: they commit every ``LOCKSTEP_FLUSH_S`` wall seconds there.  The data do not change (the same frames
+and rows, in fewer transactions); a crash loses at most that much more of the run's tail, which the resume
+records as a gap as before.
+
 ``make_fit_hook(db, store, latitude_deg=)``: the engine's ``Fit`` step calls it.  It flushes the
 run's writer, builds the run's measured-data ``Dataset`` (``bench.storage.export.run_dataset``: 1-s
 means of the recorded segments), keeps the rows of the segments named by the step's
@@ -81,6 +89,18 @@ def close_devices(devices: Devices) -> list[str]:
         except Exception as exc:  # noqa: BLE001 - report and go on
             problems.append(f"{name}: {type(exc).__name__}: {exc}")
     return problems
+
+
+LOCKSTEP_FLUSH_S = 2.0
+
+
+def writer_options_for(clock: Clock) -> dict[str, Any]:
+    """``SqlRunStore(writer_options=...)`` for ``clock`` (see the module docstring)."""
+    if getattr(clock, "lockstep", False):
+        pace = getattr(clock, "pace", None)
+        if pace is None or pace > 1.0:
+            return {"flush_interval_s": LOCKSTEP_FLUSH_S}
+    return {}
 
 
 def engine_config_for(clock: Clock, base: EngineConfig | None = None) -> EngineConfig:

@@ -22,21 +22,24 @@ class Received:
 
 
 class CommandLog:
-    """Thread-safe, bounded (the newest ``limit`` requests) log of the requests one simulator received."""
+    """Thread-safe, bounded (the newest ``limit`` requests) log of the requests one simulator received.
+    Kept as plain tuples (mono, link, request), given out as ``Received``: a long run logs a hundred
+    thousand requests, and tuples of strings and numbers are not watched by the garbage collector."""
 
     def __init__(self, device: str, limit: int = 200_000) -> None:
         self.device = device
-        self._entries: collections.deque[Received] = collections.deque(maxlen=limit)
+        self._entries: collections.deque[tuple[float, str, str]] = collections.deque(maxlen=limit)
         self._lock = threading.Lock()
 
     def record(self, link: str, request: str) -> None:
-        entry = Received(time.monotonic(), self.device, link, request)
+        entry = (time.monotonic(), link, request)
         with self._lock:
             self._entries.append(entry)
 
     def entries(self) -> list[Received]:
         with self._lock:
-            return list(self._entries)
+            entries = list(self._entries)
+        return [Received(mono, self.device, link, request) for mono, link, request in entries]
 
 
 def link_name(peer: tuple | None) -> str:

@@ -55,7 +55,9 @@ Fault injection (``sim.faults``, a ``GyroFaults``):
 - ``clear_status_bits``: bit mask cleared from the status byte of every produced frame
   (e.g. 0x01 = gyro X invalid).  A sample with ``valid=False`` clears all validity bits.
 
-``sent_log`` (read it with ``sent_frames()``) keeps the last ``sent_log_limit`` produced frames as ``SentFrame`` (bench time,
+``sent_log`` (read it with ``sent_frames()``) keeps the last ``sent_log_limit`` produced frames, each a
+plain tuple (a campaign keeps a hundred thousand per gyro: tuples of numbers and bytes are not watched by
+the garbage collector, objects are, at every full collection), given out as ``SentFrame`` (bench time,
 sequence, the exact bytes built, whether they were written to a client, whether the line
 corrupted them): tests compare what the driver accepted against it.
 """
@@ -154,7 +156,8 @@ class GyroStreamSimulator:
         self.temp_scale = temp_scale
         self.output_units = output_units
         self.faults = GyroFaults(seed)
-        self.sent_log: collections.deque[SentFrame] = collections.deque(maxlen=sent_log_limit)
+        # (bench_time, sequence, frame, delivered, corrupted): the fields of a SentFrame
+        self.sent_log: collections.deque[tuple[float, int, bytes, bool, bool]] = collections.deque(maxlen=sent_log_limit)
         self.overrun_frames = 0
         self.received = CommandLog("gyro")        # every ASCII command, by the sender's link
         self.max_backlog_frames = max_backlog_frames
@@ -227,7 +230,7 @@ class GyroStreamSimulator:
         """Snapshot of ``sent_log``, consistent with what is on the line: a batch is written and
         logged under one lock, so a frame the driver already holds is always in the snapshot."""
         with self._lock:
-            return list(self.sent_log)
+            return [SentFrame(*entry) for entry in self.sent_log]
 
     @property
     def data_rate_hz(self) -> int:
@@ -518,4 +521,4 @@ class GyroStreamSimulator:
         link_up = not self.faults.link_down()
         delivered = link_up and self._write_bytes(line)
         for k, (t, (seq, data)) in enumerate(zip(times, frames)):
-            self.sent_log.append(SentFrame(t, seq, data, delivered, k in corrupted_frames))
+            self.sent_log.append((t, seq, data, delivered, k in corrupted_frames))

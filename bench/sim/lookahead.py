@@ -48,7 +48,7 @@ from typing import TYPE_CHECKING, Any, Iterator, Sequence
 
 import numpy as np
 
-from bench.sim.physics import GyroPhysics, GyroSample, Outputs, gyro_samples
+from bench.sim.physics import GyroPhysics, GyroSample, Outputs, SampleRows
 
 if TYPE_CHECKING:   # pragma: no cover
     from bench.sim.bench import SimulatedBench, _RowInputs
@@ -56,12 +56,18 @@ if TYPE_CHECKING:   # pragma: no cover
 _LOCKS = (type(threading.Lock()), type(threading.RLock()))
 _NOISE = (random.Random, np.random.Generator)      # measurement noise of reads: not the physics' inputs
 _SKIP_TYPES = frozenset(_LOCKS + _NOISE)
+_SCALARS = frozenset((int, float, bool, str, bytes, type(None)))
 MAX_BLOCK_STEPS = 100_000      # a longer jump (an outage passing) goes the physics' own chunked way
 
 
-def fingerprint(models: Sequence[Any]) -> bytes:
-    """The models' state as bytes: equal bytes, the same future physics inputs.  Pickled without a
-    memo, so equal values give equal bytes whether or not the model shares one object between fields."""
+def fingerprint(models: Sequence[Any]) -> bytes | tuple:
+    """The models' state: an equal fingerprint, the same future physics inputs.  Models whose fields are
+    all plain scalars (a supply, checked at every instant by every unit) give a tuple of (name, type, value);
+    others their state pickled without a memo, so equal values give equal bytes whether or not the model
+    shares one object between fields."""
+    flat = _flat_state(models)
+    if flat is not None:
+        return flat
     state: list[Any] = []
     for m in models:
         d = vars(m)
@@ -72,6 +78,20 @@ def fingerprint(models: Sequence[Any]) -> bytes:
     p.fast = True            # no memo (the states hold no cycles)
     p.dump(state)
     return buf.getvalue()
+
+
+def _flat_state(models: Sequence[Any]) -> tuple | None:
+    """(name, type, value) of every field of ``models`` when all are plain scalars (else None)."""
+    out: list[tuple] = []
+    for m in models:
+        for k, v in vars(m).items():
+            tv = type(v)
+            if tv in _SCALARS:
+                out.append((k, tv, v))
+            elif tv not in _SKIP_TYPES:
+                return None
+        out.append(None)            # the end of one model's fields
+    return tuple(out)
 
 
 def freeze(model: Any) -> bytes:
@@ -201,6 +221,8 @@ class _Block:
     t0: float                          # block start (an instant already served)
     index: dict[float, int]            # grid time -> row of ``out``
     out: Outputs
+    end: float                         # its last grid time
+    samples: SampleRows                # the gyro sample of each row of ``out``
 
 
 class Lookahead:
@@ -283,7 +305,7 @@ class Lookahead:
                 yield
             finally:
                 ph.rollback(ahead)
-                self._block = _Block(here, self._t, blk.index, blk.out)
+                self._block = _Block(here, self._t, blk.index, blk.out, blk.end, blk.samples)
 
     def reset(self, t: float) -> None:
         """After the physics was restored from a snapshot taken at bench time ``t``."""
@@ -320,9 +342,12 @@ class Lookahead:
                 rows = [blk.index.get(x) for x in frames] if frames else []
                 if None not in rows:
                     self._serve_real(t)
-                    return gyro_samples(blk.out, rows)
-            if t not in blk.index and blk.index and max(blk.index) <= self._t:
-                self._ahead = min(self.MAX_AHEAD_S, 2 * self._ahead)    # used to its end
+                    samples = blk.samples
+                    return [samples[k] for k in rows]
+            if t not in blk.index and blk.end < t:
+                # used as far as it reaches (to its end, or to a grid time between two instants when the
+                # engine ticked on odd seconds meanwhile): nothing had to be dropped
+                self._ahead = min(self.MAX_AHEAD_S, 2 * self._ahead)
             else:
                 self.stats["dropped"] += 1
                 self._ahead = self.MIN_AHEAD_S
@@ -367,10 +392,12 @@ class Lookahead:
         self.inputs.rows = self._rows(times.tolist())
         cp = ph.checkpoint()
         out = ph.run_grid(n)
-        self._block = _Block(cp, t0, {g: i for i, g in enumerate(times.tolist())}, out)
+        grid = times.tolist()
+        self._block = _Block(cp, t0, {g: i for i, g in enumerate(grid)}, out, grid[-1], SampleRows(out))
         self.stats["blocks"] += 1
         self._serve_real(t)
-        return gyro_samples(out, [self._block.index[x] for x in frames]) if frames else []
+        samples = self._block.samples
+        return [samples[self._block.index[x]] for x in frames] if frames else []
 
     def _direct(self, t: float, frames: list[float] | None) -> list[GyroSample]:
         """One instant on the physics' own path (instants or frames off the grid)."""

@@ -165,6 +165,8 @@ class W1TreeSimulator(BackgroundLoop):
         self._last_read: dict[str, tuple[bytes, bytes]] = {}   # (scratchpad, retained) behind that text
         self._lock = threading.Lock()
         self._dirs: dict[str, str] = {}              # device directory per probe (checked every instant)
+        self._root_key: tuple[int, int, int] | None = None   # the root's inode, links, mtime when listed
+        self._listing: set[str] = set()
 
     def device_dir(self, name: str) -> Path:
         return self.root / f"{FAMILY_PREFIX}{self.probes[name]}"
@@ -205,15 +207,32 @@ class W1TreeSimulator(BackgroundLoop):
             now = self.clock.now()
             self.source.advance_to(now)
             temps = self.source.probe_temperatures()
+            present = self._present()
             for name in self.probes:
                 if name not in temps and self.faults.active(name) is None:
                     raise KeyError(f"probe source has no temperature for position {name!r} "
                                    f"(has {sorted(temps)})")
-                self._write_probe(name, temps.get(name))
+                self._write_probe(name, temps.get(name), present)
             self.updates += 1
             self.last_update_t = now
 
-    def _write_probe(self, name: str, celsius: float | None) -> None:
+    def _present(self) -> set[str] | None:
+        """The names of the device directories in the tree now (None when the root itself is gone): a
+        directory taken away from outside is written again at the next conversion.  Listed again only when
+        the root changed (its link count and modification time move with every directory added or removed):
+        one ``stat`` per conversion for every probe."""
+        try:
+            st = os.stat(self.root)
+            key = (st.st_ino, st.st_nlink, st.st_mtime_ns)
+            if key != self._root_key:
+                self._listing = set(os.listdir(self.root))
+                self._root_key = key
+        except FileNotFoundError:
+            self._root_key = None
+            return None
+        return self._listing
+
+    def _write_probe(self, name: str, celsius: float | None, present: set[str] | None) -> None:
         fault = self.faults.active(name)
         if fault == FAULT_VANISHED:
             directory = self.device_dir(name)
@@ -225,13 +244,14 @@ class W1TreeSimulator(BackgroundLoop):
         if current is None:
             current = good_scratchpad(celsius, self.resolution_bits)
         read = (current, self._retained[name])
-        if self._last_read.get(name) == read and name in self._written and os.path.isdir(self._device_dir_str(name)):
+        here = present is not None and FAMILY_PREFIX + self.probes[name] in present
+        if here and self._last_read.get(name) == read and name in self._written:
             return              # the same conversion result as the files already show
         directory = self._device_dir_str(name)
         text, ok = w1_slave_text(current, self._retained[name])
         if ok:
             self._retained[name] = current
-        present = os.path.isdir(directory)
+        present = here and os.path.isdir(directory)
         if self._written.get(name) == text and present:
             self._last_read[name] = read
             return              # same conversion result: the files already say exactly this

@@ -261,6 +261,37 @@ def _short(exc: BaseException) -> str:
 _LIVE: "weakref.WeakSet[FrameWriter]" = weakref.WeakSet()     # every writer of this process (metrics)
 
 
+_INSERTS: dict[tuple, tuple[str, tuple[str, ...], tuple]] = {}
+
+
+def _insert_rows(conn, table, rows: list[dict[str, Any]]) -> None:
+    """``INSERT`` of ``rows`` (dicts of column values, all with the same keys) into ``table``, as
+    ``conn.execute(insert(table), rows)`` stores them.  With a positional DBAPI (SQLite's ``?``) the statement
+    is compiled once per table, keys and dialect, each value goes through its column's bind processor, and
+    the rows go to the driver's ``executemany`` as tuples: SQLAlchemy's per-row parameter handling costs
+    more than SQLite's own insert (a campaign's writers store every probe reading of every unit).  Rows
+    with other keys than the first, and named-parameter drivers, take ``conn.execute``."""
+    keys = tuple(rows[0])
+    dialect = conn.dialect
+    key = (table.name, keys, dialect.name, dialect.paramstyle)
+    plan = _INSERTS.get(key)
+    if plan is None:
+        compiled = insert(table).compile(dialect=dialect, column_keys=list(keys))
+        if compiled.positional and set(compiled.positiontup) == set(keys):
+            names = tuple(compiled.positiontup)
+            procs = compiled._bind_processors
+            plan = (str(compiled), names, tuple(procs.get(n) for n in names))
+        else:
+            plan = ("", (), ())
+        _INSERTS[key] = plan
+    sql, names, procs = plan
+    if not sql or any(len(r) != len(keys) or r.keys() != rows[0].keys() for r in rows):
+        conn.execute(insert(table), rows)
+        return
+    params = [tuple(v if f is None else f(v) for f, v in zip(procs, [r[n] for n in names])) for r in rows]
+    conn.exec_driver_sql(sql, params)
+
+
 def live_writer_statuses() -> list["WriterStatus"]:
     """``status()`` of every frame writer of this process that is not closed (for ``bench.metrics``)."""
     return [st for st in (w.status() for w in list(_LIVE)) if not st.closed]
@@ -758,7 +789,7 @@ class FrameWriter:
                 self._write_seconds(conn, _Summary.merge([c.summary for c in batch.chunks]))
             for name, rows in batch.rows.items():
                 if rows:
-                    conn.execute(insert(_ROW_TABLES[name]), rows)
+                    _insert_rows(conn, _ROW_TABLES[name], rows)
 
     def _write_seconds(self, conn, summary: _Summary) -> None:
         """Add the batch's per-second sums to the frame_seconds blocks (read-modify-write: this writer

@@ -169,7 +169,7 @@ def campaign(args: argparse.Namespace) -> int:
               f"{g.get('median_interval_s')} s (max {g.get('max_interval_s')}); probes every "
               f"{(r['sampling'].get('probes') or {}).get('median_interval_s')} s")
     print("parent sampling: " + ", ".join(f"{k} {v['readings']} every {v['median_interval_s']} s (max {v['max_interval_s']})"
-                                          for k, v in sampling.items() if v))
+                                          for k, v in sampling.items() if v and k != "units"))
     ok = doc["status"] == "completed" and all(u["status"] == "completed" for u in units) and wall <= args.budget_s
     return 0 if ok else 1
 
