@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.fit.closeloop import _judged_blocks, describe_structure
+from bench.fit.closeloop import describe_structure
+from bench.fit.metrics import window_numbers
 from bench.fit.noisefloor import block_covariance, fit_noise_model
 
 
@@ -61,7 +62,7 @@ def test_flicker_noise_alone_is_not_periodic_against_its_own_noise_model():
     for _ in range(60):
         x = rng.normal(0, 0.1, n) + 0.02 * _flicker(rng, n)
         model = fit_noise_model([(x - x.mean(), 1.0, t)])
-        idx = _judged_blocks(t, x)
+        idx = window_numbers(t, x, 100.0)
         floor = model.floor_over(idx)["noise_floor_dph"]
         red_null.append("periodic" in describe_structure(x, t, floor, block_covariance(model, idx))["failed_tests"])
         white_null.append(describe_structure(x, t, floor).get("peak_p", 1.0) < 0.01)

@@ -37,7 +37,7 @@ from bench.fit import effects as fx
 from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, search)
-from bench.fit.metrics import bias_stability
+from bench.fit.metrics import bias_stability, window_means, window_numbers
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
@@ -92,7 +92,6 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     component (``bench.fit.periodic``: significant against ``null_cov``, the noise model's covariance
     of these block means -- white noise at the floor without it --, at least two periods in the span,
     better than a cubic in time) and a linear trend (HAC)."""
-    from bench.fit.metrics import window_means
     from bench.fit.periodic import periodic_component
 
     means = window_means(time_s, residual, 100.0)
@@ -107,11 +106,9 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
     out["std100_dph"] = s
     out["ratio_to_noise_floor"] = s / noise_floor if noise_floor > 0 else float("inf")
     out["ljung_box_p"] = ljung_box(centred, min(10, n // 5))[1]
-    index = _judged_blocks(time_s, residual)
-    if null_cov is None or null_cov.shape != (n, n) or len(index) != n:
+    index = window_numbers(time_s, residual, 100.0)
+    if null_cov is None or null_cov.shape != (n, n):
         null_cov = (noise_floor ** 2 if noise_floor > 0 else float(np.var(means))) * np.eye(n)
-    if len(index) != n:
-        index = np.arange(n, dtype=np.float64)
     out.update(periodic_component(means, index, null_cov, BLOCK_S))
     tt_h = np.arange(n) * 100.0 / 3600.0
     res = ols_hac(np.column_stack([np.ones(n), tt_h]), means)
@@ -259,7 +256,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     spread = _coefficient_spread(model, problem, kept_t, stack(kept_t, design.validate, inputs_va),
                                  diag & np.isfinite(r_va), t_va)
     # the floor over the blocks actually judged (an out-of-range stretch or an outage keeps its lag)
-    idx_va, idx_tr = _judged_blocks(t_va, va_in), _judged_blocks(t_tr, r_tr)
+    idx_va, idx_tr = window_numbers(t_va, va_in, BLOCK_S), window_numbers(t_tr, r_tr, BLOCK_S)
     floor_val = model.floor_over(idx_va, spread=spread)
     floor_tr = model.floor_over(idx_tr)
     floor = floor_val["noise_floor_dph"]
@@ -336,24 +333,10 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     return report
 
 
-def _judged_blocks(time_s: np.ndarray, residual: np.ndarray) -> np.ndarray:
-    """The number, counted from the run's start, of every 100-s block the std of 100-s means of
-    ``residual`` uses (``metrics.window_means``: blocks of its finite samples), so that a stretch left
-    out keeps its length between the blocks either side."""
-    ok = np.isfinite(residual)
-    t = np.asarray(time_s, dtype=np.float64)[ok]
-    if len(t) == 0:
-        return np.zeros(0)
-    tb = block_means(t, {"t": t}, BLOCK_S, min_fraction=0.5).columns["t"]
-    return np.floor((tb - t[0]) / BLOCK_S + 0.5)
-
-
 def _coefficient_spread(model, problem: SearchProblem, kept, X_val: np.ndarray, judged: np.ndarray,
                         t_va: np.ndarray):
     """``noisefloor.coefficient_spread`` of the final design: its TRAIN evidence blocks (numbered by
     time, so outages keep their lags) against its block means on the judged validation part."""
-    from bench.fit.metrics import window_means
-
     Xb = problem.design(kept)
     tb = block_means(problem.fine.time, {"t": problem.fine.time}, BLOCK_S).columns["t"]
     index = np.round((tb - tb[0]) / BLOCK_S)

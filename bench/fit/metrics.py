@@ -22,6 +22,7 @@ Definitions and sources:
 Public API::
 
     window_means(time_s, x, window_s=100.0, min_fraction=0.5) -> array
+    window_numbers(time_s, x, window_s=100.0, min_fraction=0.5) -> array
     bias_stability(time_s, x, window_s=100.0) -> float
     bias_stability_3sigma(time_s, x, window_s=100.0) -> float
     bias_repeatability(run_biases) -> float
@@ -42,26 +43,38 @@ from bench.signal import allan_deviation, block_means
 BI_FACTOR = 0.664
 
 
+def _windows(time_s: np.ndarray, x: np.ndarray, window_s: float, min_fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """(number, mean) of every window ``window_means`` keeps (see there)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    v = np.asarray(x, dtype=np.float64)
+    ok = np.isfinite(v)
+    if not ok.any():
+        return np.array([]), np.array([])
+    step = float(np.median(np.diff(t))) if t.size > 1 else float(window_s)
+    if step >= 0.9 * window_s:
+        return np.round((t[ok] - t[0]) / float(window_s)), v[ok]
+    ids = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
+    rows = np.bincount(ids)
+    n = np.bincount(ids, weights=ok.astype(np.float64), minlength=rows.size)
+    total = np.bincount(ids, weights=np.where(ok, v, 0.0), minlength=rows.size)
+    keep = (n > 0) & (n >= min_fraction * float(np.median(rows[rows > 0])))
+    return np.flatnonzero(keep).astype(np.float64), total[keep] / n[keep]
+
+
 def window_means(time_s: np.ndarray, x: np.ndarray, window_s: float = 100.0, min_fraction: float = 0.5) -> np.ndarray:
     """Means of the finite values of ``x`` over consecutive windows of ``window_s`` seconds counted from
     the record's first sample (one grid for every quantity of a record, whatever is missing in it); a
     window is kept when at least ``min_fraction`` of the usual number of samples per window (the
     median over the windows that hold samples) are finite.  Samples already ``window_s`` or more
     apart are each their own window."""
-    t = np.asarray(time_s, dtype=np.float64)
-    v = np.asarray(x, dtype=np.float64)
-    ok = np.isfinite(v)
-    if not ok.any():
-        return np.array([])
-    step = float(np.median(np.diff(t))) if t.size > 1 else float(window_s)
-    if step >= 0.9 * window_s:
-        return v[ok]
-    ids = np.floor((t - t[0]) / float(window_s)).astype(np.int64)
-    rows = np.bincount(ids)
-    n = np.bincount(ids, weights=ok.astype(np.float64), minlength=rows.size)
-    total = np.bincount(ids, weights=np.where(ok, v, 0.0), minlength=rows.size)
-    keep = (n > 0) & (n >= min_fraction * float(np.median(rows[rows > 0])))
-    return total[keep] / n[keep]
+    return _windows(time_s, x, window_s, min_fraction)[1]
+
+
+def window_numbers(time_s: np.ndarray, x: np.ndarray, window_s: float = 100.0, min_fraction: float = 0.5) -> np.ndarray:
+    """The number, counted from the record's first sample, of every window ``window_means`` keeps, in
+    its order: a stretch left out (out of range, an outage) keeps its length between the windows
+    either side."""
+    return _windows(time_s, x, window_s, min_fraction)[0]
 
 
 def bias_stability(time_s: np.ndarray, x: np.ndarray, window_s: float = 100.0) -> float:
