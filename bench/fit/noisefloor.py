@@ -165,7 +165,10 @@ class NoiseModel:
         if m < 2:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
                     "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
-        noise = centred(block_covariance(self, idx, block_s, mus))
+        # each noise term's covariance of the centred means once: their sum is the noise's, their traces
+        # the terms' shares
+        per_mu = {mu: centred(block_covariance(self, idx, block_s, (mu,))) for mu in mus}
+        noise = sum(per_mu.values())
         w = spread.block_cov if spread is not None and spread.block_cov is not None else None
         if w is not None and w.shape != (m, m):
             w = None
@@ -178,7 +181,7 @@ class NoiseModel:
         if not var > 0 or not c1 > 0:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")],
                     "limit_dph": float("nan"), "edf": 0.0, "blocks": int(m)}
-        parts = {mu: float(np.trace(centred(block_covariance(self, idx, block_s, (mu,))))) / (m - 1) for mu in mus}
+        parts = {mu: float(np.trace(c)) / (m - 1) for mu, c in per_mu.items()}
         model_edf = self.floor_edf(parts)
         r = var / c1                           # the fallback above scales the form as a whole
         lo, hi, limit = quadratic_form_quantiles((var, c2 * r * r, c3 * r ** 3),
