@@ -12,7 +12,9 @@ Which decision uses which run:
    declared input lies inside its training range and the rest.  The declared model's inputs are never
    clipped for the diagnosis.  Each chosen effect is confirmed there: one whose removal does not make
    the in-range std of 100-s means worse "did not generalise" and is kept out of "after" (so the
-   validation error is never made worse); its channel is not called explained.
+   validation error is never made worse); its channel is not called explained.  Effects that leave
+   the residual above the noise floor and remove less than half of its variance above that floor are
+   "not the cause": they fit a share of a driver no candidate models, and are left out.
 4. Noise floor (``bench.fit.noisefloor``) from the Allan variance of the final residuals (training
    run and the in-range validation part) at short taus, fitted with white, flicker and quantisation
    terms, extrapolated to the std of 100-s means over the validation blocks judged, at their block
@@ -47,6 +49,8 @@ __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDA
 
 AT_FLOOR_RATIO = 1.2
 STOP_RATIO = 1.15
+# added effects must remove at least this share of the validation residual's variance above the floor
+MIN_EXCESS_SHARE = 0.5
 MIN_DIAGNOSIS_BLOCKS = 12
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
@@ -244,21 +248,39 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                 break
     kept_t = tuple(kept)
 
+    def floors(effs):
+        # noise floor from the final residuals at short taus; on the validation run it also carries the
+        # error the training noise put into the fitted coefficients (a model of the true form has it too)
+        _b, rt, rv, _d = fit(effs)
+        vin = np.where(diag, rv, np.nan)
+        nm = fit_noise_model([(rt, sample_period(t_tr), t_tr), (vin, sample_period(t_va), t_va)])
+        sp = _coefficient_spread(nm, problem, effs, stack(effs, design.validate, inputs_va),
+                                 diag & np.isfinite(rv), t_va)
+        # the floor over the blocks actually judged (an out-of-range stretch or an outage keeps its lag)
+        iva, itr = window_numbers(t_va, vin, BLOCK_S), window_numbers(t_tr, rt, BLOCK_S)
+        return nm, sp, iva, itr, nm.floor_over(iva, spread=sp), nm.floor_over(itr)
+
+    model, spread, idx_va, idx_tr, floor_val, floor_tr = floors(kept_t)
+    # VALIDATE: effects that account for too little of the structure are not its cause.  Kept effects
+    # that leave the in-range validation std100 above the floor and remove less than MIN_EXCESS_SHARE of
+    # its excess variance over the floor have fitted a share of something no candidate models (a driver
+    # no column records, correlated with temperature in both runs): the structure stays unexplained
+    not_the_cause = None
+    if kept_t:
+        b_val, a_val = val_in_range(()), val_in_range(kept_t)
+        fl = floor_val["noise_floor_dph"]
+        excess = b_val ** 2 - fl ** 2
+        share = (b_val ** 2 - a_val ** 2) / excess if excess > 0 else 1.0
+        if np.isfinite(fl) and not at_floor(a_val, floor_val) and share < MIN_EXCESS_SHARE:
+            not_the_cause = (kept_t, a_val, b_val, float(share))
+            kept_t = ()
+            model, spread, idx_va, idx_tr, floor_val, floor_tr = floors(kept_t)
+
     beta0, r_tr0, r_va0, r_dep0 = fit(())
     beta, r_tr, r_va, r_dep = fit(kept_t)
     before = _errors(r_tr0, r_va0, r_dep0, t_tr, t_va, in_range)
     after = _errors(r_tr, r_va, r_dep, t_tr, t_va, in_range)
-
-    # noise floor from the final residuals at short taus; on the validation run it also carries the
-    # error the training noise put into the fitted coefficients (a model of the true form has it too)
     va_in = np.where(diag, r_va, np.nan)
-    model = fit_noise_model([(r_tr, sample_period(t_tr), t_tr), (va_in, sample_period(t_va), t_va)])
-    spread = _coefficient_spread(model, problem, kept_t, stack(kept_t, design.validate, inputs_va),
-                                 diag & np.isfinite(r_va), t_va)
-    # the floor over the blocks actually judged (an out-of-range stretch or an outage keeps its lag)
-    idx_va, idx_tr = window_numbers(t_va, va_in, BLOCK_S), window_numbers(t_tr, r_tr, BLOCK_S)
-    floor_val = model.floor_over(idx_va, spread=spread)
-    floor_tr = model.floor_over(idx_tr)
     floor = floor_val["noise_floor_dph"]
     # the null of the periodic test: the noise model's covariance of the judged block means
     null_va = block_covariance(model, idx_va)
@@ -290,6 +312,13 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                 "status": "did not generalise" if np.isfinite(w) else
                           "not significant on train without the effects that did not generalise"}
                for e, w, wo in not_generalised]
+    if not_the_cause is not None:
+        effs, w, wo, share = not_the_cause
+        dropped += [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
+                     "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
+                     "share_of_excess_variance": share,
+                     "status": f"not the cause: together they remove only {100 * share:.0f} % of the validation "
+                               f"residual's variance above the noise floor"} for e in effs]
     names = list(design.names) + [nm for e in kept_t for nm in e.columns(fine).keys()]
     floor_doc = {**floor_val, "train_record": floor_tr, "noise_model": model.summary(),
                  "method": "Allan variance of the final residuals (train + in-range validation) fitted "
@@ -426,6 +455,14 @@ def _findings(r: dict[str, Any]) -> str:
         if not np.isfinite(e["validation_std100_with_dph"]):
             lines.append(f"{e['kind']} ({params}) was chosen on the training run together with effects that did "
                          "not generalise and is not significant on the training run without them; it is left out.")
+            continue
+        if "share_of_excess_variance" in e:
+            lines.append(f"{e['kind']} ({params}) was chosen on the training run and helps on validation "
+                         f"(std100 {e['validation_std100_without_dph']:.4g} -> {e['validation_std100_with_dph']:.4g} "
+                         f"deg/h with the others chosen), but together they remove only "
+                         f"{100 * e['share_of_excess_variance']:.0f} % of the variance above the noise floor: "
+                         "they fit a share of something no candidate models, so they are not its cause and are "
+                         "left out.")
             continue
         lines.append(f"{e['kind']} ({params}) was chosen on the training run but did not generalise: the "
                      f"in-range validation std100 is {e['validation_std100_without_dph']:.4g} without it and "

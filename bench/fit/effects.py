@@ -544,6 +544,14 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
         out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own,
                           limits=LAG_LIMITS_S))
+        if p != own:
+            def lag_absolute(x: Inputs, tau, p=p):
+                # an element that follows another probe's node with a lag: its temperature lag_tau(T_p)
+                # itself (the declared model holds the own probe, not T_p, so lag - T_p would impose
+                # -1x T_p that nothing in the physics asks for)
+                return {f"lag{tau:.0f}({p})-25": first_order_lag(x.temps[p], x.time, tau) - T0_C}
+            out.append(Family("thermal_lag", (("probe", p), ("form", "absolute")), lag_absolute, "tau_s",
+                              LAG_TAUS_S, limits=LAG_LIMITS_S))
     if own in probes and order > 1:
         def lag_shape(x: Inputs, tau, p=own):
             # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)

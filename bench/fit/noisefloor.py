@@ -42,7 +42,8 @@ a span, not over as many consecutive blocks), with the training coefficients' er
 covariance (``coefficient_spread``); its tail by Pearson's three moments (two, Satterthwaite's, make
 it too light when a few slow components dominate), and the fitted noise level's own uncertainty
 (the Allan fit's coefficient covariance, ``fit_noise_model``) carried into the interval and the
-limit as a predictive (F-like) distribution.
+limit as a predictive (F-like) distribution; a level with no more than ``MIN_LEVEL_EDF`` degrees of
+freedom sets no limit (that distribution has no finite mean).
 """
 from __future__ import annotations
 
@@ -61,6 +62,7 @@ TAU_MAX_S = 1100.0
 PIECE_TAUS = 8.0       # a stretch of L seconds gives Allan variances up to tau = L / PIECE_TAUS
 INTERVAL = 0.90
 LIMIT_P = 0.01
+MIN_LEVEL_EDF = 2.0                  # the fitted noise level must have more degrees of freedom to set a limit
 
 
 def _structure_ratio(k: np.ndarray, mu: float) -> np.ndarray:
@@ -116,7 +118,7 @@ class NoiseModel:
     taus: np.ndarray
     adev: np.ndarray
     tau_max_s: float
-    cov: np.ndarray | None = None      # covariance of the h_mu (in ``MUS`` order) from the fit
+    cov: np.ndarray | None = None      # covariance of the floor terms' h_mu (``MUS`` order) given the nuisance terms
 
     def allan_var(self, tau: float, mus=NOISE_MUS) -> float:
         return float(sum(self.coef.get(mu, 0.0) * tau ** mu for mu in mus))
@@ -186,6 +188,11 @@ class NoiseModel:
         r = var / c1                           # the fallback above scales the form as a whole
         lo, hi, limit = quadratic_form_quantiles((var, c2 * r * r, c3 * r ** 3),
                                                  ((1 - INTERVAL) / 2, (1 + INTERVAL) / 2, 1 - LIMIT_P), model_edf)
+        # a level with <= 2 degrees of freedom (the short taus cannot separate the noise terms, e.g. a
+        # slow structure dominating from a few sample periods on): a new std judged against it has a
+        # predictive distribution without a finite mean, and its "limit" would pass any std as noise.
+        # No limit then; the verdict has the floor itself (1.2x) to go by
+        limit = limit if model_edf > MIN_LEVEL_EDF else float("nan")
         return {"noise_floor_dph": float(np.sqrt(var)), "interval_dph": [float(np.sqrt(lo)), float(np.sqrt(hi))],
                 "limit_dph": float(np.sqrt(limit)), "edf": float(c1 * c1 / c2) if c2 > 0 else float(m - 1),
                 "noise_only_dph": float(np.sqrt(noise_var)),
@@ -456,7 +463,7 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
     favours the taus that came out low and biases the flicker level down) and edf summed over the
     stretches (``allan_edf``, mixed by each noise type's share of the model at that tau); a few
     re-weighted passes.  The covariance of the fitted coefficients (non-negative ones held at zero)
-    is kept: the floor carries it into its limit."""
+    is kept (the floor terms' given the nuisance terms): the floor carries it into its limit."""
     pooled: dict[float, list] = {}
 
     def add(tau: float, v: float, k: float, edf: np.ndarray) -> None:
@@ -499,10 +506,15 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         sol_s, _ = nnls(A / scale, avar * w)
         sol = sol_s / scale
         model_v = np.maximum(A0 @ sol, 1e-3 * floor_v)
+    # the floor terms' covariance given the nuisance terms (tau^1, tau^2: structure, never part of the
+    # floor) at their fitted values: a slow excess that the nuisance and flicker terms could share is
+    # structure, not uncertainty of the noise level (their joint covariance made the level unknowable,
+    # edf << 1, on a residual with a strong slow component, and any std then passed as noise)
     active = sol > 0
+    floor_active = active & np.isin(np.array(MUS), NOISE_MUS)
     cov = np.zeros((len(MUS), len(MUS)))
-    if active.any():
-        Aa = (A0 * w[:, None])[:, active]
-        cov[np.ix_(active, active)] = np.linalg.pinv(Aa.T @ Aa)
+    if floor_active.any():
+        Af = (A0 * w[:, None])[:, floor_active]
+        cov[np.ix_(floor_active, floor_active)] = np.linalg.pinv(Af.T @ Af)
     coef = {mu: float(c) for mu, c in zip(MUS, sol)}
     return NoiseModel(coef=coef, taus=taus, adev=np.sqrt(avar), tau_max_s=float(taus[-1]), cov=cov)
