@@ -54,9 +54,14 @@ LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0,
 # a lag much shorter than a 100-s evidence block is a rate (lag_tau(T) - T = -tau dT/dt): the rate
 # family names that, so the time constant is not refined below the grid's first value
 LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
+# a lag far slower than the record is within it the running integral of the temperature (a drift that
+# follows the temperature history), not a time constant the data can tell: searched up to this many
+# times the training run's length
+LAG_MAX_RUNS = 2.0
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
+RELAY_WINDOWS_S = (60.0, 120.0, 300.0, 600.0)                   # the relay's rate filter
 GRADUAL_WIDTHS_C = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)           # C
 
 
@@ -537,13 +542,16 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     order = max(1, ctx.poly_order)
 
     own = ctx.primary_probe
+    duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
+    lag_limits = (LAG_LIMITS_S[0], max(LAG_LIMITS_S[0], min(LAG_LIMITS_S[1], LAG_MAX_RUNS * duration)))
+    lag_taus = tuple(t for t in LAG_TAUS_S if t <= lag_limits[1]) or LAG_TAUS_S[:1]
     for p in probes:
         def lag_linear(x: Inputs, tau, p=p):
             # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
             v = first_order_lag(x.temps[p], x.time, tau)
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
-        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", LAG_TAUS_S, chosen_probe=p != own,
-                          limits=LAG_LIMITS_S))
+        out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", lag_taus, chosen_probe=p != own,
+                          limits=lag_limits))
         if p != own:
             def lag_absolute(x: Inputs, tau, p=p):
                 # an element that follows another probe's node with a lag: its temperature lag_tau(T_p)
@@ -551,15 +559,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                 # -1x T_p that nothing in the physics asks for)
                 return {f"lag{tau:.0f}({p})-25": first_order_lag(x.temps[p], x.time, tau) - T0_C}
             out.append(Family("thermal_lag", (("probe", p), ("form", "absolute")), lag_absolute, "tau_s",
-                              LAG_TAUS_S, limits=LAG_LIMITS_S))
+                              lag_taus, limits=lag_limits))
     if own in probes and order > 1:
         def lag_shape(x: Inputs, tau, p=own):
             # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
             v = first_order_lag(x.temps[p], x.time, tau) - T0_C
             return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
-        out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", LAG_TAUS_S,
-                          chosen_probe=False, limits=LAG_LIMITS_S))
+        out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", lag_taus,
+                          chosen_probe=False, limits=lag_limits))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
@@ -574,9 +582,13 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         out.append(Family("temp_rate_cross", (("probe", p),),
                           lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": (x.temps[p] - T0_C) * x.rate(p, w)},
                           "window_s", RATE_WINDOWS_S, chosen_probe=mine))
-        out.append(Family("hysteresis", (("probe", p), ("form", "relay")),
-                          lambda x, thr, p=p: {f"relay{thr:.3g}(d{p})": relay_state(x.rates[p], thr)},
-                          "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine))
+        # the relay switches on the rate as the element sees it: its smoothing (the rate filter's
+        # window) is the element's own, unknown, so each window is a variant of the relay
+        for w in RELAY_WINDOWS_S:
+            out.append(Family("hysteresis", (("probe", p), ("form", "relay"), ("window_s", f"{w:.0f}")),
+                              lambda x, thr, p=p, w=w: {f"relay{thr:.3g}(d{p}[{w:.0f}s])": relay_state(x.rate(p, w), thr)},
+                              "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine,
+                              variants=len(RELAY_WINDOWS_S)))
         widths = _widths_for(inputs.temps[p])
         if widths:
             limits = (widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))
@@ -601,7 +613,6 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
-    duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     warm_taus = tuple(t for t in WARMUP_TAUS_S if t <= duration / 3.0)
     if len(warm_taus) >= 2:
         out.append(Family("warmup", (), warm, "tau_s", warm_taus, limits=(warm_taus[0] / 2.0, duration / 3.0)))
