@@ -454,31 +454,27 @@ def memory_start(rule: str, temp: np.ndarray, width_c: float) -> float:
 def reversal_relay_state(temp: np.ndarray, width_c: float, start: float) -> np.ndarray:
     """Relay hysteresis on the temperature path (a Schmitt trigger on T): the state switches to +1
     once T has risen ``width_c`` above its lowest value since the last switch, to -1 once it has
-    fallen ``width_c`` below its highest; it holds in between and starts at ``start`` (+1 or -1).
+    fallen ``width_c`` below its highest; it holds in between and starts at ``start`` (+1 or -1; 0:
+    neither branch, until the first move of ``width_c`` away from the start).
     The sample in whose step the switching level is crossed takes the share of the step after the
     crossing (T linear within the step), so that the state's means move continuously with the width
     and the path's timing, however coarse the samples."""
     x = _hold_missing(np.asarray(temp, dtype=np.float64)).tolist()
     out = np.empty(len(x))
-    s = 1.0 if start >= 0 else -1.0
+    s = float(np.sign(start))
     hi = lo = x[0] if x else 0.0
     prev = hi
     for i, v in enumerate(x):
         o = None
-        if s > 0:
-            if v > hi:
-                hi = v
-            elif hi - v >= width_c:
-                level = hi - width_c
-                after = (level - v) / (prev - v) if prev > v and prev > level else 1.0
-                s, lo, o = -1.0, v, 1.0 - 2.0 * after
-        else:
-            if v < lo:
-                lo = v
-            elif v - lo >= width_c:
-                level = lo + width_c
-                after = (v - level) / (v - prev) if v > prev and prev < level else 1.0
-                s, hi, o = 1.0, v, 2.0 * after - 1.0
+        hi, lo = max(hi, v), min(lo, v)
+        if s >= 0 and hi - v >= width_c:
+            level = hi - width_c
+            after = (level - v) / (prev - v) if prev > v and prev > level else 1.0
+            s, lo, o = -1.0, v, s - (s + 1.0) * after
+        elif s <= 0 and v - lo >= width_c:
+            level = lo + width_c
+            after = (v - level) / (v - prev) if v > prev and prev < level else 1.0
+            s, hi, o = 1.0, v, s + (1.0 - s) * after
         out[i] = s if o is None else o
         prev = v
     return out
@@ -603,13 +599,13 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                     out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
                                       limits=limits, variants=len(GRADUAL_SHAPES) * len(MEMORY_STARTS),
                                       delayed=True))
-            for start in MEMORY_STARTS[1:]:
+            for start in MEMORY_STARTS:
                 def reversal(x: Inputs, w, delay=0.0, p=p, start=start):
                     path = x.path(p, delay)
                     return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(path, w, memory_start(start, path, w))}
                 out.append(Family("hysteresis", (("probe", p), ("form", "reversal"), ("start", start)), reversal,
                                   "width_c", widths, chosen_probe=mine, limits=limits,
-                                  variants=len(MEMORY_STARTS) - 1, delayed=True))
+                                  variants=len(MEMORY_STARTS), delayed=True))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
