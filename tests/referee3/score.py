@@ -167,6 +167,8 @@ def product_effect_columns(a: dict, run: Run) -> list[np.ndarray] | None:
             lag = column(Effect("lag", (probe,), {"tau_s": float(p["tau_s"])}), temps, t, power, {}, dt)
             if p.get("form") == "polynomial":
                 return [(lag - 25) ** k for k in (1, 2, 3)]
+            if p.get("form") == "absolute":
+                return [lag]
             return [lag - temps[probe]]
         if kind == "gradient":
             a_, b_ = str(p["probes"]).split("-")
