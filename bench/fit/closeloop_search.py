@@ -45,7 +45,7 @@ MAX_EFFECTS = 4
 # a memory's delay is profiled with its width re-fitted within this factor (log) of its current width
 DELAY_PROFILE_SPAN = float(np.log(2.0))
 CV_FOLDS = 8
-PAIR_POOL = 6
+PAIR_POOL = 8
 PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
