@@ -58,6 +58,10 @@ LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
 # follows the temperature history), not a time constant the data can tell: searched up to this many
 # times the training run's length
 LAG_MAX_RUNS = 2.0
+# the lag of another probe's temperature itself (not minus it) differs from that temperature by about
+# tau dT/dt: below three evidence blocks it is that probe's temperature (a gradient with the own
+# probe) plus a small rate, which those families name
+ABSOLUTE_LAG_MIN_S = 300.0
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
@@ -554,8 +558,11 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                 # itself (the declared model holds the own probe, not T_p, so lag - T_p would impose
                 # -1x T_p that nothing in the physics asks for)
                 return {f"lag{tau:.0f}({p})-25": first_order_lag(x.temps[p], x.time, tau) - T0_C}
+            # a faster element is the probe's own temperature (plus a rate): the gradient names that
+            abs_limits = (ABSOLUTE_LAG_MIN_S, max(ABSOLUTE_LAG_MIN_S, lag_limits[1]))
             out.append(Family("thermal_lag", (("probe", p), ("form", "absolute")), lag_absolute, "tau_s",
-                              lag_taus, limits=lag_limits))
+                              tuple(t for t in lag_taus if t >= ABSOLUTE_LAG_MIN_S) or (ABSOLUTE_LAG_MIN_S,),
+                              limits=abs_limits))
     if own in probes and order > 1:
         def lag_shape(x: Inputs, tau, p=own):
             # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
