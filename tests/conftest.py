@@ -12,6 +12,10 @@ import uuid
 import pytest
 
 os.environ.setdefault("W1THERMSENSOR_NO_KERNEL_MODULE", "1")
+# One BLAS thread in the test process and in every process it starts (workers, API servers): CI runs
+# on 2 cores with 2 CPU hogs beside the suite, where multi-threaded OpenBLAS spin-waits (a 900x900
+# Cholesky: 0.55 s with 2 threads, 0.01 s with one, at load average 4).  Set before numpy is imported.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 PG_ADMIN_URL = os.environ.get("BENCH_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 

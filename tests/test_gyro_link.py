@@ -94,7 +94,7 @@ def test_one_percent_corruption_no_bad_frame_accepted_no_intact_frame_lost(clock
     try:
         for _ in range(10):
             clock.advance(1.0)
-            wait_until(lambda: len(sim.sent_frames()) >= round((clock.now() - T0) * 1000), what="sim output")
+            wait_until(lambda: sim.sent_count() >= round((clock.now() - T0) * 1000), what="sim output")
         sent = sim.sent_frames()
         intact = [s.frame for s in sent if not s.corrupted]
         got = collect(link, len(intact))

@@ -34,7 +34,7 @@ def test_one_percent_corruption_frames_missing_match_what_the_line_lost(db):
     try:
         for _ in range(SECONDS):
             clock.advance(1.0)
-            wait_until(lambda: len(sim.sent_frames()) >= round((clock.now() - T0) * 1000), what="sim output")
+            wait_until(lambda: sim.sent_count() >= round((clock.now() - T0) * 1000), what="sim output")
             # every intact frame of this second received (and so stamped) before the clock moves on: the
             # drill measures the accounting, not how late a loaded host reads its line
             intact_so_far = sum(1 for f in sim.sent_frames() if not f.corrupted)
@@ -87,8 +87,8 @@ class LateHost:
     def step(self) -> None:
         self.clock.advance(self.STEP_S)
         due = round((self.clock.now() - T0) * 1000)
-        wait_until(lambda: len(self.sim.sent_frames()) >= due, what="sim output")
-        size = len(self.sim.sent_frames()) * self.decoder.spec.length
+        wait_until(lambda: self.sim.sent_count() >= due, what="sim output")
+        size = self.sim.sent_count() * self.decoder.spec.length
         while len(self.received) < size:
             self.received += self.sock.recv(1 << 20)
         if self.clock.now() < self.late_until:

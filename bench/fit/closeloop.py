@@ -44,6 +44,7 @@ from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficie
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
+from bench.signal.lstsq import blas_threads
 
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
 
@@ -579,17 +580,18 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                                              "ambiguous_delta_bic": AMBIGUOUS_DBIC,
                                              "at_floor_ratio": AT_FLOOR_RATIO},
                               "channels": {}}
-    for ch in channels:
-        missing = [f"gyro_{ch}" for ds in (train, validate) if f"gyro_{ch}" not in ds]
-        if missing:
-            raise ValueError(f"channel {ch!r}: column gyro_{ch} missing from the "
-                             f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
-        declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
-        terms = [t["expr"] for t in declared.definition["terms"]]
-        ctx = fx.Context(channel=ch, primary_probe=probe, probes=tuple(train.temp_names()),
-                         channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
-                         poly_order=_poly_order(terms, probe))
-        report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
+    with blas_threads():     # thousands of small products and Cholesky factors: one BLAS thread
+        for ch in channels:
+            missing = [f"gyro_{ch}" for ds in (train, validate) if f"gyro_{ch}" not in ds]
+            if missing:
+                raise ValueError(f"channel {ch!r}: column gyro_{ch} missing from the "
+                                 f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
+            declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
+            terms = [t["expr"] for t in declared.definition["terms"]]
+            ctx = fx.Context(channel=ch, primary_probe=probe, probes=tuple(train.temp_names()),
+                             channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
+                             poly_order=_poly_order(terms, probe))
+            report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
     return report
 
 

@@ -335,11 +335,14 @@ def gls_whitener(g: np.ndarray) -> np.ndarray:
     direction), so solving with L whitens the block means under the noise model."""
     from scipy.linalg import cholesky
 
+    from bench.signal.lstsq import blas_threads
+
     n = len(g)
     c = 2.0 * float(np.max(np.abs(g))) if n else 0.0
     if not c > 0:
         return np.eye(n)
-    return cholesky(g + c, lower=True)
+    with blas_threads():
+        return cholesky(g + c, lower=True)
 
 
 def gls_f_test(L: np.ndarray, X0: np.ndarray, X1: np.ndarray, y: np.ndarray) -> tuple[float, float]:

@@ -8,8 +8,9 @@ eigen-decomposition and applies one step of iterative refinement on the residual
 semi-normal equations; one BLAS pass per step, ~10 significant digits left).  Worse-conditioned
 designs go through a chunked Householder QR of [X/s, y] (TSQR: R factors of row blocks stacked and
 reduced again) and an SVD of R with relative cut-off ``rcond`` (rank reported).  BLAS runs with
-``BLAS_THREADS`` (default 1, via threadpoolctl) threads during the solve.  Rows with any non-finite
-value in X, y or the weights are left out and get a NaN residual.  Units: those of the design.
+``BLAS_THREADS`` (default 1, via threadpoolctl: ``blas_threads()``) threads during the solve.  Rows with
+any non-finite value in X, y or the weights are left out and get a NaN residual.  Units: those of the
+design.
 """
 from __future__ import annotations
 
@@ -94,7 +95,7 @@ def lstsq(x: np.ndarray, y: np.ndarray, *, names: list[str] | None = None, weigh
     n = int(used.sum())
     if n < k:
         raise ValueError(f"lstsq: {n} usable rows for {k} coefficients")
-    with _blas_threads():
+    with blas_threads():
         coef, rank, cond = _solve(x, y, used, sw, rcond, chunk_rows)
         resid = y - x @ coef
     resid[~used] = np.nan
@@ -123,7 +124,9 @@ _SEMI_NORMAL_MAX_COND = 1e6
 BLAS_THREADS: int | None = 1
 
 
-def _blas_threads():
+def blas_threads():
+    """Context manager: BLAS limited to ``BLAS_THREADS`` threads inside (the one thread policy of the
+    numerical code: this solver, the close-the-loop search, the noise model's Cholesky factor)."""
     if BLAS_THREADS is None:
         return contextlib.nullcontext()
     from threadpoolctl import threadpool_limits

@@ -55,9 +55,10 @@ Fault injection (``sim.faults``, a ``GyroFaults``):
 - ``clear_status_bits``: bit mask cleared from the status byte of every produced frame
   (e.g. 0x01 = gyro X invalid).  A sample with ``valid=False`` clears all validity bits.
 
-``sent_log`` (read it with ``sent_frames()``) keeps the last ``sent_log_limit`` produced frames, each a
-plain tuple (a campaign keeps a hundred thousand per gyro: tuples of numbers and bytes are not watched by
-the garbage collector, objects are, at every full collection), given out as ``SentFrame`` (bench time,
+``sent_log`` (read it with ``sent_frames()``, count it with ``sent_count()``) keeps the last
+``sent_log_limit`` produced frames, each a plain tuple (a campaign keeps a hundred thousand per gyro:
+tuples of numbers and bytes are not watched by the garbage collector, objects are, at every full
+collection), given out as ``SentFrame`` (bench time,
 sequence, the exact bytes built, whether they were written to a client, whether the line
 corrupted them): tests compare what the driver accepted against it.
 """
@@ -231,6 +232,12 @@ class GyroStreamSimulator:
         logged under one lock, so a frame the driver already holds is always in the snapshot."""
         with self._lock:
             return [SentFrame(*entry) for entry in self.sent_log]
+
+    def sent_count(self) -> int:
+        """``len(sent_frames())`` without the snapshot (a poll while a long log grows: the snapshot is
+        O(frames) and holds the lock the sending thread needs)."""
+        with self._lock:
+            return len(self.sent_log)
 
     @property
     def data_rate_hz(self) -> int:
