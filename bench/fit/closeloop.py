@@ -263,16 +263,19 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
 
     model, spread, idx_va, idx_tr, floor_val, floor_tr = floors(kept_t)
     # VALIDATE: effects that account for too little of the structure are not its cause.  Kept effects
-    # that leave the in-range validation std100 above the floor and remove less than MIN_EXCESS_SHARE of
-    # its excess variance over the floor have fitted a share of something no candidate models (a driver
+    # that leave the in-range validation std100 above the noise and remove less than MIN_EXCESS_SHARE of
+    # its excess variance over the noise have fitted a share of something no candidate models (a driver
     # no column records, correlated with temperature in both runs): the structure stays unexplained
     not_the_cause = None
     if kept_t:
         b_val, a_val = val_in_range(()), val_in_range(kept_t)
-        fl = floor_val["noise_floor_dph"]
+        # judged against the noise itself: the floor's share from the spread of these effects' own
+        # coefficients (ill-determined, e.g. a slow lag collinear with the declared polynomial) is no
+        # excuse for them
+        fl = floor_val.get("noise_only_dph", floor_val["noise_floor_dph"])
         excess = b_val ** 2 - fl ** 2
         share = (b_val ** 2 - a_val ** 2) / excess if excess > 0 else 1.0
-        if np.isfinite(fl) and not at_floor(a_val, floor_val) and share < MIN_EXCESS_SHARE:
+        if np.isfinite(fl) and a_val > AT_FLOOR_RATIO * fl and share < MIN_EXCESS_SHARE:
             not_the_cause = (kept_t, a_val, b_val, float(share))
             kept_t = ()
             model, spread, idx_va, idx_tr, floor_val, floor_tr = floors(kept_t)
