@@ -79,6 +79,16 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
     lags = [f for f in fx.families(ctx, fine) if f.kind == "thermal_lag"]
     assert lags and all(f.bounds[0] == fx.LAG_TAUS_S[0] for f in lags)
+    # ... nor beyond twice the record (11.1 h here): slower, it is the temperature's running integral
+    assert all(f.bounds[1] == pytest.approx(2.0 * (t[-1] - t[0])) and max(f.grid) <= f.bounds[1] for f in lags)
+    # another probe's temperature lagged as it is: from three evidence blocks up (faster, a gradient)
+    two = fx.Context(channel="x", primary_probe="t1", probes=("t1", "t2"), channels=("x",), latitude_deg=None)
+    other = fx.Inputs(time=t, temps={"t1": temp, "t2": temp + 0.5},
+                      rates={p: fx.rate_c_per_min(temp, t, 300.0) for p in ("t1", "t2")},
+                      since_on=t - t[0], power_known=False, up=None, input_rate=None)
+    absolute = [f for f in fx.families(two, other) if f.kind == "thermal_lag" and dict(f.fixed).get("form") == "absolute"]
+    assert [dict(f.fixed)["probe"] for f in absolute] == ["t2"]
+    assert absolute[0].bounds[0] == fx.ABSOLUTE_LAG_MIN_S and min(absolute[0].grid) >= fx.ABSOLUTE_LAG_MIN_S
 
 
 def test_block_means_edf_is_exact_for_white_noise_and_small_under_flicker():

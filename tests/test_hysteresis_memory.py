@@ -29,6 +29,17 @@ def test_reversal_relay_switches_after_a_reversal_of_one_width():
     assert a - b == pytest.approx(0.2)
 
 
+def test_a_neutral_reversal_relay_holds_neither_branch_until_the_first_move_of_one_width():
+    x = np.array([20.0, 21.0, 22.0, 21.5, 20.5, 19.0, 18.0, 19.0, 21.5, 22.0])
+    got = fx.reversal_relay_state(x, 2.5, 0.0)
+    # no move of 2.5 C from the start's extremes until 19.0 (the level 19.5, 2.5 below the high of
+    # 22.0, is crossed a third of the way before the end of the step 20.5 -> 19.0: 0 -> -1 shared)
+    np.testing.assert_array_equal(got[:5], np.zeros(5))
+    assert got[5] == pytest.approx(-1.0 / 3.0) and got[6] == -1.0
+    # then heating: 2.5 above the new low (18.0) is 20.5, crossed within the step 19.0 -> 21.5
+    assert got[7] == -1.0 and got[8] == pytest.approx(-1.0 + 2.0 * (1.0 / 2.5)) and got[9] == 1.0
+
+
 def test_relay_state_is_fixed_by_the_temperature_path_after_the_first_excursion():
     rng = np.random.default_rng(3)
     x = np.cumsum(rng.normal(0, 0.3, 5000))
