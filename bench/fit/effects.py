@@ -94,6 +94,10 @@ class Inputs:
     up: np.ndarray | None                   # (n, 3) up component of the body axes x, y, z
     input_rate: np.ndarray | None           # deg/h along the channel (Earth + table)
     paths: dict[str, np.ndarray] | None = None   # the temperature paths memories follow (``temperature_path``)
+    # block means of ``source`` (the run at its own rate) over ``block_s``: a rate through another
+    # filter is then the block mean of the source's, as the full-rate fit will see it
+    source: "Inputs | None" = field(default=None, repr=False)
+    block_s: float | None = None
 
     @property
     def dt(self) -> float:
@@ -108,8 +112,24 @@ class Inputs:
         cache = self.__dict__.setdefault("_rate_cache", {})
         got = cache.get(key)
         if got is None:
-            got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+            if self.source is not None:
+                # the filter on the readings themselves, then averaged (a relay switching on it must
+                # switch when the full-rate column does, not when a rate of block means crosses)
+                full = self.source.rate(probe, window_s)
+                got = block_means(self.source.time, {"r": full}, self.block_s).columns["r"]
+            else:
+                got = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+            cache[key] = got
         return got
+
+    def relay(self, probe: str, window_s: float, threshold: float) -> np.ndarray:
+        """``relay_state`` of the probe's rate through a filter of ``window_s``.  On block means of a
+        source run, the block means of the source's relay: a relay latches on the first crossing, which
+        the readings' own noise brings forward; a rate of block means would switch later."""
+        if self.source is not None:
+            full = self.source.relay(probe, window_s, threshold)
+            return block_means(self.source.time, {"r": full}, self.block_s).columns["r"]
+        return relay_state(self.rate(probe, window_s), threshold)
 
     def path(self, probe: str, delay_s: float = 0.0) -> np.ndarray:
         """The probe's temperature path as a hysteresis memory follows it (``temperature_path``): given
@@ -149,7 +169,8 @@ class Inputs:
                       rates={k: c[f"R:{k}"] for k in self.rates}, since_on=c["since_on"],
                       power_known=self.power_known,
                       up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
-                      input_rate=c.get("w_in"), paths={k: c[f"P:{k}"] for k in (self.paths or {})})
+                      input_rate=c.get("w_in"), paths={k: c[f"P:{k}"] for k in (self.paths or {})},
+                      source=self, block_s=float(block_s))
 
 
 @dataclass(frozen=True)
@@ -589,7 +610,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         # window) is the element's own, unknown, so each window is a variant of the relay
         for w in RELAY_WINDOWS_S:
             out.append(Family("hysteresis", (("probe", p), ("form", "relay"), ("window_s", f"{w:.0f}")),
-                              lambda x, thr, p=p, w=w: {f"relay{thr:.3g}(d{p}[{w:.0f}s])": relay_state(x.rate(p, w), thr)},
+                              lambda x, thr, p=p, w=w: {f"relay{thr:.3g}(d{p}[{w:.0f}s])": x.relay(p, w, thr)},
                               "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine,
                               variants=len(RELAY_WINDOWS_S)))
         widths = _widths_for(inputs.temps[p])
