@@ -47,7 +47,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.signal import block_means, linear_recurrence, orientation_axes_per_sample, run_segments, temperature_rate
+from bench.signal import BlockPlan, block_means, linear_recurrence, orientation_axes_per_sample, run_segments, temperature_rate
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -94,8 +94,8 @@ class Inputs:
     up: np.ndarray | None                   # (n, 3) up component of the body axes x, y, z
     input_rate: np.ndarray | None           # deg/h along the channel (Earth + table)
     paths: dict[str, np.ndarray] | None = None   # the temperature paths memories follow (``temperature_path``)
-    # block means of ``source`` (the run at its own rate) over ``block_s``: a rate through another
-    # filter is then the block mean of the source's, as the full-rate fit will see it
+    # block means of ``source`` (the run at its own rate) over ``block_s``: a column that must be
+    # computed at the readings' own rate (``relay``) is the block mean of the source's
     source: "Inputs | None" = field(default=None, repr=False)
     block_s: float | None = None
 
@@ -112,14 +112,7 @@ class Inputs:
         cache = self.__dict__.setdefault("_rate_cache", {})
         got = cache.get(key)
         if got is None:
-            if self.source is not None:
-                # the filter on the readings themselves, then averaged (a relay switching on it must
-                # switch when the full-rate column does, not when a rate of block means crosses)
-                full = self.source.rate(probe, window_s)
-                got = block_means(self.source.time, {"r": full}, self.block_s).columns["r"]
-            else:
-                got = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
-            cache[key] = got
+            got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
         return got
 
     def relay(self, probe: str, window_s: float, threshold: float) -> np.ndarray:
@@ -127,9 +120,15 @@ class Inputs:
         source run, the block means of the source's relay: a relay latches on the first crossing, which
         the readings' own noise brings forward; a rate of block means would switch later."""
         if self.source is not None:
-            full = self.source.relay(probe, window_s, threshold)
-            return block_means(self.source.time, {"r": full}, self.block_s).columns["r"]
+            return self._from_source(self.source.relay(probe, window_s, threshold))
         return relay_state(self.rate(probe, window_s), threshold)
+
+    def _from_source(self, values: np.ndarray) -> np.ndarray:
+        """Block means of a source column over this grid's blocks (the plan built once)."""
+        plan = self.__dict__.get("_plan")
+        if plan is None:
+            plan = self.__dict__["_plan"] = BlockPlan(self.source.time, self.block_s)
+        return plan.means(values)
 
     def path(self, probe: str, delay_s: float = 0.0) -> np.ndarray:
         """The probe's temperature path as a hysteresis memory follows it (``temperature_path``): given
