@@ -53,6 +53,7 @@ SWAP_DBIC = 2.0
 # two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:
 # below 6 the evidence for one over the other is at most "positive", never "strong")
 AMBIGUOUS_DBIC = 6.0
+TIE_DBIC = 2.0
 # why blocked cross-validation cannot judge an effect (then the validation run does)
 CV_CONFINED = "the effect lies within one training segment"
 CV_OUT_OF_RANGE = "the effect lies where no training segment can be scored inside the others' range"
@@ -549,6 +550,11 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         passing = sorted((r for r in ranked if r[2]["passed"]), key=lambda r: bic[id(r)])
         passing_pairs = sorted((r for r in pairs if r[2]["passed"]), key=lambda r: bic[id(r)])
         pick = passing[0] if passing else None
+        if pick is not None:
+            # candidates within TIE_DBIC of the best are a tie the data cannot break ("not worth more
+            # than a bare mention"): the one with the fewest searched parameters and choices is taken
+            ties = [r for r in passing if bic[id(r)] - bic[id(pick)] < TIE_DBIC]
+            pick = min(ties, key=lambda r: (r[0][0].family.n_nonlinear, bic[id(r)]))
         if passing_pairs and (pick is None or (bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC
                                                and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
                                                and not _at_floor(pick, chosen, stop_at))):
