@@ -134,3 +134,12 @@ def test_effects_that_fit_a_share_of_an_unrecorded_driver_are_not_its_cause(cls,
     left_out = [e for ch in report["channels"].values() for e in ch["effects_not_generalised"]
                 if e["status"].startswith("not the cause")]
     assert left_out and all(e["share_of_excess_variance"] < 0.5 for e in left_out), left_out
+
+
+def test_a_rate_beside_a_logger_outage_is_the_slope_of_the_readings_present():
+    # y's bias follows dT4/dt; the validation run has three logger outages (153-291 s).  With the rate
+    # set to zero where its window reached into an outage, the right effect left 1.90x the oracle's
+    # error and the verdict partly_explained (measured); the oracle computes the rate there too
+    r = score_case("rate_probe", 15)
+    failures = {c["channel"]: c["failures"] for c in r["channels"] if c["failures"]}
+    assert r["ok"], failures

@@ -48,6 +48,21 @@ def test_rate_method_must_be_known_and_time_comes_first():
     assert signal.temperature_rate(t, 2.0 * t, 10.0)[50] == pytest.approx(120.0)
 
 
+def test_rate_beside_a_logger_outage_is_missing_or_the_slope_of_the_readings_present():
+    # 1-s readings of a 3 C/min ramp with a 200-s outage: a 120-s window reaches into it for 59 s on
+    # each side (less one sample).  By default the rate is missing there; asked for, it is the one-sided slope of what
+    # was read, the true rate (an element does not stop heating while the logger is off)
+    t = np.concatenate([np.arange(0.0, 1000.0), np.arange(1200.0, 2000.0)])
+    temp = 0.05 * t
+    near = (t > 999.0 - 60.0 + 1.0) & (t < 1200.0 + 60.0 - 1.0)
+    missing = signal.temperature_rate(t, temp, 120.0)
+    assert np.all(np.isnan(missing[near])) and np.allclose(missing[~near], 3.0)
+    present = signal.temperature_rate(t, temp, 120.0, near_gaps="present")
+    assert np.allclose(present, 3.0)
+    with pytest.raises(ValueError, match="near_gaps"):
+        signal.temperature_rate(t, temp, 120.0, near_gaps="zero")
+
+
 def test_savgol_rate_restarts_at_each_segment():
     t = np.r_[np.arange(0.0, 600.0, 10.0), np.arange(0.0, 600.0, 10.0)]
     temp = np.r_[t[:60] / 60.0, 50.0 - 2.0 * t[60:] / 60.0]     # +1 then -2 C/min

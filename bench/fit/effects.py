@@ -112,7 +112,23 @@ class Inputs:
         cache = self.__dict__.setdefault("_rate_cache", {})
         got = cache.get(key)
         if got is None:
-            got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+            if self.source is not None:
+                # a derivative filter works on the readings: the block means of the source's rate (the
+                # rate of block means would be a coarser filter, at least three blocks wide)
+                got = cache[key] = self._from_source(self.source.rate(probe, window_s))
+            else:
+                got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+        return got
+
+    def own_rate(self, key: tuple, column: Callable[["Inputs"], np.ndarray]) -> np.ndarray:
+        """``column`` of the run at the readings' own rate: on block means of a source, the block means
+        of the source's column (a product of inputs averaged, not a product of averages; cached)."""
+        if self.source is None:
+            return column(self)
+        cache = self.__dict__.setdefault("_own_rate_cache", {})
+        got = cache.get(key)
+        if got is None:
+            got = cache[key] = self._from_source(column(self.source))
         return got
 
     def relay(self, probe: str, window_s: float, threshold: float) -> np.ndarray:
@@ -318,8 +334,11 @@ def _hold_missing(x: np.ndarray) -> np.ndarray:
 
 def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0) -> np.ndarray:
     """dT/dt in C/min (``bench.signal.temperature_rate``, centred slope, as the declared models' rate
-    terms); NaN -> 0 at the edges so a regressor column stays usable."""
-    return np.nan_to_num(temperature_rate(time_s, temp, window_s, method="centred_slope"), nan=0.0)
+    terms); beside a logger outage the slope of the readings present in the window (an element kept
+    changing its temperature while the logger was off: its rate is not zero there); NaN -> 0 where
+    even that is undefined, so a regressor column stays usable."""
+    return np.nan_to_num(temperature_rate(time_s, temp, window_s, method="centred_slope", near_gaps="present"),
+                         nan=0.0)
 
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
@@ -600,10 +619,13 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         mine = p != own
         out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
                           "window_s", RATE_WINDOWS_S, chosen_probe=mine))
-        out.append(Family("rate_squared", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.rate(p, w) ** 2},
+        out.append(Family("rate_squared", (("probe", p),),
+                          lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.own_rate(
+                              ("rate^2", p, round(float(w), 3)), lambda s: s.rate(p, w) ** 2)},
                           "window_s", RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("temp_rate_cross", (("probe", p),),
-                          lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": (x.temps[p] - T0_C) * x.rate(p, w)},
+                          lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": x.own_rate(
+                              ("temp*rate", p, round(float(w), 3)), lambda s: (s.temps[p] - T0_C) * s.rate(p, w))},
                           "window_s", RATE_WINDOWS_S, chosen_probe=mine))
         # the relay switches on the rate as the element sees it: its smoothing (the rate filter's
         # window) is the element's own, unknown, so each window is a variant of the relay

@@ -29,14 +29,27 @@ def check_rate_method(method: str) -> str:
 
 
 def temperature_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float, method: str = DEFAULT_RATE_METHOD,
-                     segments: list[slice] | None = None) -> np.ndarray:
+                     segments: list[slice] | None = None, near_gaps: str = "missing") -> np.ndarray:
     """dT/dt in C/min of ``temp_c`` (C) sampled at ``time_s`` (s), filtered over ``window_s`` (s) with
-    ``method`` (one of ``RATE_METHODS``, see the module docstring)."""
+    ``method`` (one of ``RATE_METHODS``, see the module docstring).  ``near_gaps`` (centred slope
+    only): ``"missing"`` leaves NaN where the window reaches into a gap longer than half of it;
+    ``"present"`` gives there the least-squares slope of the readings present in the window (one-sided
+    beside the gap; NaN when fewer than three)."""
     check_rate_method(method)
+    if near_gaps not in ("missing", "present"):
+        raise ValueError(f"near_gaps must be 'missing' or 'present', got {near_gaps!r}")
     if method == "savgol2":
         return _savgol(time_s, temp_c, window_s, segments)[1]
     if segments is None:
-        return _centred_slope_rate(time_s, temp_c, window_s)
+        rate = _centred_slope_rate(time_s, temp_c, window_s)
+        if near_gaps == "present":
+            t = np.asarray(time_s, dtype=np.float64)
+            x = np.asarray(temp_c, dtype=np.float64)
+            ok = np.isfinite(x) & np.isfinite(t)
+            fill = np.isnan(rate) & (t >= t[ok][0]) & (t <= t[ok][-1]) if ok.any() else np.zeros(len(t), bool)
+            if fill.any():
+                rate[fill] = _present_slope(t[ok], x[ok], t[fill], window_s)
+        return rate
     t = np.asarray(time_s, dtype=np.float64)
     out = np.full(t.size, np.nan)
     for seg in segments:
@@ -114,6 +127,20 @@ def _centred_slope_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float)
     rate[(t < to[0]) | (t > to[-1])] = np.nan
     out[:] = rate
     return out
+
+
+def _present_slope(t: np.ndarray, x: np.ndarray, at: np.ndarray, window_s: float) -> np.ndarray:
+    """Least-squares slope (C/min) of the readings (t, x) within +-window/2 of each time in ``at``
+    (O(n) with cumulative sums); NaN where fewer than three readings lie in the window."""
+    lo = np.searchsorted(t, at - window_s / 2.0, side="left")
+    hi = np.searchsorted(t, at + window_s / 2.0, side="right")
+    tc, xc = t - t[0], x - x.mean()
+    c = [np.concatenate([[0.0], np.cumsum(v)]) for v in (np.ones_like(tc), tc, tc * tc, xc, tc * xc)]
+    n, st, stt, sx, stx = (ci[hi] - ci[lo] for ci in c)
+    den = n * stt - st * st
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = (n * stx - st * sx) / den
+    return np.where((n >= 3) & (den > 0), slope, np.nan) * 60.0
 
 
 def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
