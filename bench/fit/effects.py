@@ -106,18 +106,20 @@ class Inputs:
             got = self.__dict__["_dt"] = sample_period(self.time)
         return got
 
-    def rate(self, probe: str, window_s: float) -> np.ndarray:
-        """dT/dt (C/min) of a probe through a filter of ``window_s`` (cached per window)."""
-        key = (probe, round(float(window_s), 3))
+    def rate(self, probe: str, window_s: float, near_gaps: str = "present") -> np.ndarray:
+        """dT/dt (C/min) of a probe through a filter of ``window_s`` (``rate_c_per_min``; cached per
+        window).  ``near_gaps="missing"``: NaN where the window reaches into a logger outage."""
+        key = (probe, round(float(window_s), 3), near_gaps)
         cache = self.__dict__.setdefault("_rate_cache", {})
         got = cache.get(key)
         if got is None:
             if self.source is not None:
                 # a derivative filter works on the readings: the block means of the source's rate (the
                 # rate of block means would be a coarser filter, at least three blocks wide)
-                got = cache[key] = self._from_source(self.source.rate(probe, window_s))
+                got = cache[key] = self._from_source(self.source.rate(probe, window_s, near_gaps))
             else:
-                got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt))
+                got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt),
+                                                  near_gaps)
         return got
 
     def own_rate(self, key: tuple, column: Callable[["Inputs"], np.ndarray]) -> np.ndarray:
@@ -137,7 +139,7 @@ class Inputs:
         the readings' own noise brings forward; a rate of block means would switch later."""
         if self.source is not None:
             return self._from_source(self.source.relay(probe, window_s, threshold))
-        return relay_state(self.rate(probe, window_s), threshold)
+        return relay_state(self.rate(probe, window_s, near_gaps="missing"), threshold)
 
     def _from_source(self, values: np.ndarray) -> np.ndarray:
         """Block means of a source column over this grid's blocks (the plan built once)."""
@@ -332,13 +334,17 @@ def _hold_missing(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0) -> np.ndarray:
+def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0,
+                   near_gaps: str = "present") -> np.ndarray:
     """dT/dt in C/min (``bench.signal.temperature_rate``, centred slope, as the declared models' rate
-    terms); beside a logger outage the slope of the readings present in the window (an element kept
-    changing its temperature while the logger was off: its rate is not zero there); NaN -> 0 where
-    even that is undefined, so a regressor column stays usable."""
-    return np.nan_to_num(temperature_rate(time_s, temp, window_s, method="centred_slope", near_gaps="present"),
-                         nan=0.0)
+    terms).  Beside a logger outage (``near_gaps="present"``) the slope of the readings present in the
+    window: an element kept changing its temperature while the logger was off, its rate is not zero
+    there; NaN -> 0 where even that is undefined, so a regressor column stays usable.  With
+    ``near_gaps="missing"`` NaN stays NaN there (a relay holds its state: a one-sided slope beside an
+    outage is too noisy to latch on; measured: a rate relay at 1.45x the oracle's error with it, 0.97x
+    holding)."""
+    rate = temperature_rate(time_s, temp, window_s, method="centred_slope", near_gaps=near_gaps)
+    return rate if near_gaps == "missing" else np.nan_to_num(rate, nan=0.0)
 
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
