@@ -48,6 +48,25 @@ def pg_url():
     admin.dispose()
 
 
+@pytest.fixture()
+def pg_fresh_url(pg_url):
+    """A fresh PostgreSQL database for one test, dropped after it: for tests whose services list every
+    bench or job in their database (the session's ``pg_url`` database is shared by the tests of one
+    test process, in whatever order they run)."""
+    import sqlalchemy as sa
+
+    name = f"bench_one_{uuid.uuid4().hex[:10]}"
+    admin = sa.create_engine(pg_url, isolation_level="AUTOCOMMIT")
+    with admin.connect() as conn:
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    yield pg_url.rsplit("/", 1)[0] + "/" + name
+    with admin.connect() as conn:
+        conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :n "
+                             "AND pid <> pg_backend_pid()"), {"n": name})
+        conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}"'))
+    admin.dispose()
+
+
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])
 def db(request, tmp_path):
     """An empty database per test: a SQLite file, or an own schema in the session's PostgreSQL database."""

@@ -52,24 +52,6 @@ def _db_run(db_url: str, rid: int):
         db.dispose()
 
 
-@pytest.fixture()
-def pg_db_url(pg_url):
-    """A fresh PostgreSQL database for one test (the session's ``pg_url`` database is shared)."""
-    import uuid
-
-    import sqlalchemy as sa
-    name = f"proc_{uuid.uuid4().hex[:10]}"
-    admin = sa.create_engine(pg_url, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    yield pg_url.rsplit("/", 1)[0] + "/" + name
-    with admin.connect() as conn:
-        conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :n "
-                             "AND pid <> pg_backend_pid()"), {"n": name})
-        conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}"'))
-    admin.dispose()
-
-
 def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
     """SQLite; the worker process drives the device doubles (the engine's own test doubles)."""
     from bench.clock import LockstepClock
@@ -88,19 +70,19 @@ def test_kill_api_then_worker_mid_run_sqlite_doubles(tmp_path):
 
 
 @pytest.mark.postgres
-def test_kill_api_then_worker_mid_run_postgres_doubles(pg_db_url, tmp_path):
+def test_kill_api_then_worker_mid_run_postgres_doubles(pg_fresh_url, tmp_path):
     """The same on PostgreSQL (row locks: the claim and the takeover run under SELECT ... FOR UPDATE)."""
     from bench.clock import LockstepClock
     from bench.storage import open_database
     from tests.api_support import register_bench
 
-    db = open_database(pg_db_url)
+    db = open_database(pg_fresh_url)
     register_bench(db, "proc1")
     db.dispose()
     hold = tmp_path / "hold"
     clock = LockstepClock(T0, 150.0, hold_file=str(hold)).to_json()
-    with _services(pg_db_url, tmp_path) as services:
-        _kill_and_resume(services, pg_db_url, lambda: _doubles_worker(services, "proc1", clock), SHORT_RAMP,
+    with _services(pg_fresh_url, tmp_path) as services:
+        _kill_and_resume(services, pg_fresh_url, lambda: _doubles_worker(services, "proc1", clock), SHORT_RAMP,
                          check_fit=True, hold=hold)
 
 

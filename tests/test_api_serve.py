@@ -21,8 +21,8 @@ VIEWER_TOKEN = next(tok for tok, role in TOKENS.items() if role == "viewer")
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request):
-    """None = the embedded SQLite default; else the session's fresh PostgreSQL database."""
-    return None if request.param == "sqlite" else request.getfixturevalue("pg_url")
+    """None = the embedded SQLite default; else a fresh PostgreSQL database of its own."""
+    return None if request.param == "sqlite" else request.getfixturevalue("pg_fresh_url")
 
 
 def test_serve_simulated_bench_end_to_end(tmp_path, database_url):

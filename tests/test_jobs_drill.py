@@ -31,7 +31,7 @@ HIDDEN = {"gradient": 0.06, "rate": 0.08}
 def db_url(request, tmp_path):
     if request.param == "sqlite":
         return f"sqlite:///{tmp_path / 'jobs.sqlite'}"
-    return request.getfixturevalue("pg_url")
+    return request.getfixturevalue("pg_fresh_url")
 
 
 def _services(tmp_path: Path, db_url: str) -> Services:
