@@ -2,7 +2,8 @@
 
 PostgreSQL: tests of the PostgreSQL path run against the server at 127.0.0.1:5432 (override with
 BENCH_TEST_PG_URL).  When CI=true and the server is unreachable they FAIL; elsewhere they skip.
-Each test session gets its own database, dropped at the end.
+Each test process (the suite runs in two, pytest-xdist) gets its own database, dropped at the end;
+tests whose services list every bench or job take a fresh one of their own (``pg_fresh_url``).
 """
 from __future__ import annotations
 
