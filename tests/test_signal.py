@@ -61,6 +61,8 @@ def test_rate_beside_a_logger_outage_is_missing_or_the_slope_of_the_readings_pre
     assert np.allclose(present, 3.0)
     with pytest.raises(ValueError, match="near_gaps"):
         signal.temperature_rate(t, temp, 120.0, near_gaps="zero")
+    with pytest.raises(ValueError, match="no segments"):
+        signal.temperature_rate(t, temp, 120.0, segments=[slice(0, 1000)], near_gaps="present")
 
 
 def test_savgol_rate_restarts_at_each_segment():
