@@ -27,20 +27,27 @@ def _pg_unreachable(reason: str):
     pytest.skip(f"PostgreSQL unreachable: {reason}")
 
 
-@pytest.fixture(scope="session")
-def pg_url():
-    """URL of a fresh, empty PostgreSQL database for this test session."""
+def _admin(url: str):
     import sqlalchemy as sa
 
-    try:
-        admin = sa.create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 5})
-        name = f"bench_test_{uuid.uuid4().hex[:10]}"
-        with admin.connect() as conn:
-            conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    except Exception as exc:  # noqa: BLE001 - any connection failure is "unreachable"
-        _pg_unreachable(str(exc).splitlines()[0])
-    url = PG_ADMIN_URL.rsplit("/", 1)[0] + "/" + name
-    yield url
+    return sa.create_engine(url, isolation_level="AUTOCOMMIT", connect_args={"connect_timeout": 5})
+
+
+def _create_database(admin, prefix: str) -> str:
+    """Create an empty database on ``admin``'s server; its URL."""
+    import sqlalchemy as sa
+
+    name = f"{prefix}_{uuid.uuid4().hex[:10]}"
+    with admin.connect() as conn:
+        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
+    return admin.url.render_as_string(hide_password=False).rsplit("/", 1)[0] + "/" + name
+
+
+def _drop_database(admin, url: str) -> None:
+    """Drop the database at ``url`` (its remaining connections ended first), then the admin engine."""
+    import sqlalchemy as sa
+
+    name = url.rsplit("/", 1)[1]
     with admin.connect() as conn:
         conn.execute(sa.text(
             "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :n AND pid <> pg_backend_pid()"),
@@ -49,23 +56,27 @@ def pg_url():
     admin.dispose()
 
 
+@pytest.fixture(scope="session")
+def pg_url():
+    """URL of a fresh, empty PostgreSQL database for this test process."""
+    try:
+        admin = _admin(PG_ADMIN_URL)
+        url = _create_database(admin, "bench_test")
+    except Exception as exc:  # noqa: BLE001 - any connection failure is "unreachable"
+        _pg_unreachable(str(exc).splitlines()[0])
+    yield url
+    _drop_database(admin, url)
+
+
 @pytest.fixture()
 def pg_fresh_url(pg_url):
     """A fresh PostgreSQL database for one test, dropped after it: for tests whose services list every
     bench or job in their database (the session's ``pg_url`` database is shared by the tests of one
     test process, in whatever order they run)."""
-    import sqlalchemy as sa
-
-    name = f"bench_one_{uuid.uuid4().hex[:10]}"
-    admin = sa.create_engine(pg_url, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(sa.text(f'CREATE DATABASE "{name}"'))
-    yield pg_url.rsplit("/", 1)[0] + "/" + name
-    with admin.connect() as conn:
-        conn.execute(sa.text("SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = :n "
-                             "AND pid <> pg_backend_pid()"), {"n": name})
-        conn.execute(sa.text(f'DROP DATABASE IF EXISTS "{name}"'))
-    admin.dispose()
+    admin = _admin(pg_url)
+    url = _create_database(admin, "bench_one")
+    yield url
+    _drop_database(admin, url)
 
 
 @pytest.fixture(params=["sqlite", pytest.param("postgresql", marks=pytest.mark.postgres)])

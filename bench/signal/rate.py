@@ -31,10 +31,10 @@ def check_rate_method(method: str) -> str:
 def temperature_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float, method: str = DEFAULT_RATE_METHOD,
                      segments: list[slice] | None = None, near_gaps: str = "missing") -> np.ndarray:
     """dT/dt in C/min of ``temp_c`` (C) sampled at ``time_s`` (s), filtered over ``window_s`` (s) with
-    ``method`` (one of ``RATE_METHODS``, see the module docstring).  ``near_gaps`` (``"present"``:
-    centred slope of a whole record only): ``"missing"`` leaves NaN where the window reaches into a gap longer than half of it;
-    ``"present"`` gives there the least-squares slope of the readings present in the window (one-sided
-    beside the gap; NaN when fewer than three)."""
+    ``method`` (one of ``RATE_METHODS``, see the module docstring).  ``near_gaps``: ``"missing"``
+    leaves NaN where the window reaches into a gap longer than half of it; ``"present"`` (the centred
+    slope of a whole record only) gives there the least-squares slope of the readings present in the
+    window (one-sided beside the gap; NaN when fewer than three)."""
     check_rate_method(method)
     if near_gaps not in ("missing", "present"):
         raise ValueError(f"near_gaps must be 'missing' or 'present', got {near_gaps!r}")
