@@ -17,10 +17,6 @@ KNOWN_MISSES: dict[tuple[str, int], str] = {
     ("gradual_hysteresis", 1): "explained, after 1.01x the oracle, but the memory named on t1 for the true t2 "
                                "(Duhem, reversed start): the training run barely tells the two probes apart "
                                "(BIC margin 2.3 at the step, below the ambiguity bar 6)",
-    ("lag_any_probe", 1): "the lag named on its true probe t1 in its absolute form (tau 465 s), but the "
-                          "in-range validation std100 0.02648 is 1.223x the floor 0.02165 (limit 0.02408): "
-                          "partly_explained; the code before the absolute form passed with gradient(t1-t2) "
-                          "at 1.195x",
 }
 
 SUBSET = [

@@ -12,7 +12,8 @@ from scipy.stats import chi2
 from bench.fit import effects as fx
 from bench.fit.closeloop import close_loop
 from bench.fit.closeloop_report import render_close_loop_report
-from bench.fit.closeloop_search import (CV_CONFINED, FINE_S, SearchProblem, cv_gain_text, evidence_blocks)
+from bench.fit.closeloop_search import (CV_CONFINED, FINE_S, SearchProblem, centre_stepwise, cv_gain_text,
+                                        evidence_blocks)
 from bench.fit.noisefloor import NoiseModel, barnes_b1, block_means_edf
 from bench.signal import BlockPlan, block_means
 from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
@@ -93,6 +94,29 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     absolute = [f for f in fx.families(two, other) if f.kind == "thermal_lag" and dict(f.fixed).get("form") == "absolute"]
     assert [dict(f.fixed)["probe"] for f in absolute] == ["t2"]
     assert absolute[0].bounds[0] == fx.ABSOLUTE_LAG_MIN_S and min(absolute[0].grid) >= fx.ABSOLUTE_LAG_MIN_S
+
+
+def test_a_relay_threshold_the_training_run_pins_only_to_an_interval_is_taken_at_its_middle():
+    # the training run ramps at 0.1 and 0.5 C/min only: every threshold in [0.1, 0.5) switches the
+    # relay at the same instants, so the run says no more than that; the middle of that interval in
+    # log scale, sqrt(0.1 x 0.5), is taken, not the first value the scan met
+    t = np.arange(5.0, 60000.0, FINE_S)
+    rate = np.select([(t % 12000) < 3000, (t % 12000) < 6000, (t % 12000) < 9000],
+                     [0.5, -0.1, 0.1], -0.5)
+    fine = fx.Inputs(time=t, temps={"t1": np.cumsum(rate) * FINE_S / 60.0}, rates={"t1": rate},
+                     since_on=t - t[0], power_known=False, up=None, input_rate=None)
+    relay = fx.Family("hysteresis", (("probe", "t1"), ("form", "relay")),
+                      lambda x, thr: {"r": fx.relay_state(x.rates["t1"], thr)}, "threshold_c_per_min",
+                      fx.RELAY_THRESHOLDS, stepwise=True)
+    problem = _problem(fine, 0.8 * fx.relay_state(rate, 0.3), [relay])
+    best, _ = problem.best_value(relay, ())
+    assert 0.1 <= best.value < 0.5
+    (centred,) = centre_stepwise(problem, (best,))
+    assert centred.value == pytest.approx(np.sqrt(0.1 * 0.5), rel=0.02)
+    assert problem.ssr((centred,)) == pytest.approx(problem.ssr((best,)), abs=1e-20)
+    # a parameter whose columns change continuously is left where the search put it
+    smooth = replace(relay, stepwise=False)
+    assert centre_stepwise(problem, (smooth.at(0.12),))[0].value == 0.12
 
 
 def test_block_means_edf_is_exact_for_white_noise_and_small_under_flicker():
@@ -204,3 +228,23 @@ def test_no_scale_factor_term_when_the_input_rate_never_changes():
     assert not any(f.kind == "scale_factor_temperature" for f in fx.families(ctx, static))
     turning = replace(_inputs(t, temp), input_rate=earth + 3600.0 * np.where(t > 10000.0, 2.0, 0.0))
     assert any(f.kind == "scale_factor_temperature" for f in fx.families(ctx, turning))
+
+
+def test_structure_the_model_misses_on_the_validation_run_does_not_raise_its_noise_floor():
+    # the same unit on both runs; on the validation run a bias that switches every 15 min, which no
+    # column records (a relay the model has in the wrong state there looks the same): read as noise it
+    # would lift the floor towards it
+    train, _ = make_run(TRAIN_PROFILE, {}, seed=11)
+    clean, _ = make_run(VALIDATE_PROFILE, {}, seed=12)
+    wavy, _ = make_run(VALIDATE_PROFILE, {}, seed=12)
+    t = wavy.time
+    wavy.columns["gyro_x"] = wavy.columns["gyro_x"] + 0.1 * np.sign(np.sin(2 * np.pi * (t - t[0]) / 1800.0 + 0.3))
+    quiet = close_loop(train, clean, "static", channels=["x"], bin_c=None)["channels"]["x"]
+    loud = close_loop(train, wavy, "static", channels=["x"], bin_c=None)["channels"]["x"]
+    assert quiet["noise_floor"]["validation_residual_used"]
+    assert not loud["noise_floor"]["validation_residual_used"]
+    assert "train residual (" in loud["decisions"]["noise_floor"]
+    # the floor stays the noise's: near the clean run's, far below the wave's std of 100-s means
+    assert loud["noise_floor_dph"] < 1.2 * quiet["noise_floor_dph"]      # 1.44x with it read as noise
+    assert loud["after"]["validation_std100_dph"] > 5 * loud["noise_floor_dph"]
+    assert loud["verdict"] == "unexplained_structure_remains"

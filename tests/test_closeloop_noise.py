@@ -40,6 +40,19 @@ def test_duhem_memory_is_the_recurrence_it_defines():
         assert np.max(np.abs(duhem_state(rate, t, width) - _loop(a, (1 - a) * np.sign(dT), 0.0))) < 1e-10
 
 
+def _ramp_lag_loop(t, x, tau):
+    """The lag's exact response to an input that is a straight line between samples, step by step:
+    the forced response to the ramp (x - slope tau) plus the free decay of the rest."""
+    y, out = x[0], np.empty(len(x))
+    out[0] = y
+    for i in range(1, len(x)):
+        h = t[i] - t[i - 1]
+        slope = (x[i] - x[i - 1]) / h
+        y = (x[i] - slope * tau) + (y - (x[i - 1] - slope * tau)) * np.exp(-h / tau)
+        out[i] = y
+    return out
+
+
 def test_first_order_lag_steps_over_a_logger_outage_by_its_length():
     t = np.concatenate([np.arange(0.0, 3000.0), np.arange(4800.0, 8000.0)])   # 30 min missing
     x = np.where(t < 1000, 0.0, 10.0)
@@ -48,9 +61,19 @@ def test_first_order_lag_steps_over_a_logger_outage_by_its_length():
     # over the outage the lag keeps relaxing towards 10 for 1800 s (not one sample period)
     expected = 10.0 + (y[i - 1] - 10.0) * np.exp(-1801.0 / 600.0)
     assert y[i] == pytest.approx(expected, rel=1e-9)
+    # a temperature that kept ramping through the outage: the lag follows the straight line between
+    # the readings either side, not the reading after the outage held for all of it
+    ramp = 0.01 * t
+    assert np.max(np.abs(first_order_lag(ramp, t, 600.0) - _ramp_lag_loop(t, ramp, 600.0))) < 1e-9
+    # a ramp from rest: after the transient the lag trails the ramp by slope x tau
+    assert first_order_lag(ramp, t, 600.0)[-1] == pytest.approx(ramp[-1] - 0.01 * 600.0, abs=1e-3)
     u = np.arange(0.0, 5000.0)
-    ref = _loop(np.full(len(u), np.exp(-1 / 600.0)), (1 - np.exp(-1 / 600.0)) * np.sin(u / 500.0), 0.0)
-    assert np.max(np.abs(first_order_lag(np.sin(u / 500.0), u, 600.0) - ref)) < 1e-10
+    assert np.max(np.abs(first_order_lag(np.sin(u / 500.0), u, 600.0) - _ramp_lag_loop(u, np.sin(u / 500.0), 600.0))) < 1e-10
+    # a failed conversion is interpolated between its neighbours
+    v = np.sin(u / 500.0)
+    gappy = v.copy()
+    gappy[1000:1003] = np.nan
+    assert np.max(np.abs(first_order_lag(gappy, u, 60.0) - first_order_lag(v, u, 60.0))) < 1e-5
 
 
 def test_block_means_edf_equals_the_dense_covariance_formula():

@@ -575,7 +575,63 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
                       "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
     chosen = prune(problem, chosen, steps)
-    return drop_drift_that_is_a_step(problem, chosen, steps), steps
+    return centre_stepwise(problem, drop_drift_that_is_a_step(problem, chosen, steps)), steps
+
+
+# relative change of the training SSR below which two parameter values fit the training run alike
+SAME_FIT_RTOL = 1e-9
+CENTRE_START_STEP = 0.005      # ln units: the first step out from the value chosen
+CENTRE_BISECTIONS = 8
+
+
+def centre_stepwise(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+    """A stepwise parameter (``fx.Family.stepwise``: a relay's threshold) at the middle, in log scale,
+    of the interval of values that fit the training run exactly alike (the others fixed).  The search
+    lands anywhere in that interval (a grid value, where a golden section stopped); the training run
+    cannot tell its values apart, and a validation run whose rates fall inside it switches the relay
+    differently for each: the middle is the value furthest from both ends the data allow."""
+    out = list(effects)
+    for i, e in enumerate(out):
+        if not (e.family.stepwise and e.value is not None and e.value > 0):
+            continue
+        others = tuple(out[:i] + out[i + 1:])
+        cost = problem.ssr(tuple(out))
+        if not np.isfinite(cost):
+            continue
+
+        def alike(lv: float, fam=e.family) -> bool:
+            c = problem.ssr(others + (fam.at(float(np.exp(lv))),))
+            return bool(np.isfinite(c) and abs(c - cost) <= SAME_FIT_RTOL * max(abs(cost), 1e-300))
+
+        lv0 = float(np.log(e.value))
+        lo_lim, hi_lim = (float(np.log(b)) for b in e.family.bounds)
+        edges = []
+        for sign, limit in ((-1.0, lo_lim), (1.0, hi_lim)):
+            inside, step = lv0, CENTRE_START_STEP
+            outside = None
+            while outside is None:
+                nxt = inside + sign * step
+                if sign * (nxt - limit) >= 0:
+                    if alike(limit):
+                        inside = limit
+                        break
+                    outside = limit
+                elif alike(nxt):
+                    inside, step = nxt, 2.0 * step
+                else:
+                    outside = nxt
+            if outside is not None:
+                for _ in range(CENTRE_BISECTIONS):
+                    mid = 0.5 * (inside + outside)
+                    if alike(mid):
+                        inside = mid
+                    else:
+                        outside = mid
+            edges.append(inside)
+        centre = 0.5 * (edges[0] + edges[1])
+        if abs(centre - lv0) > CENTRE_START_STEP:
+            out[i] = e.family.at(float(np.exp(centre)))
+    return tuple(out)
 
 
 # the change point of a bias step is looked for away from the run's ends (a step in the first or last

@@ -210,6 +210,9 @@ class Family:
     # is part of the family, not of its identity (one memory per probe, form and start)
     delayed: bool = False
     delay_s: float = field(default=0.0, compare=False)
+    # the columns change only where the parameter crosses a value the data reach (a relay's threshold,
+    # a trigger's width): the training run pins it to an interval, not to a point
+    stepwise: bool = False
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -304,23 +307,43 @@ def sample_period(time_s: np.ndarray) -> float:
 
 
 def first_order_lag(x: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Output of a first-order lag (time constant tau) driven by x, started in equilibrium at x[0]:
-    y[i] = a y[i-1] + (1 - a) x[i], a = exp(-dt[i] / tau) with each sample's own step (a logger outage
-    is a long step, not one sample period).  Missing input samples are held at the previous value."""
+    """Output of a first-order lag (time constant tau) driven by x, started in equilibrium at x[0],
+    exact for an input that is linear between samples (the ramp-invariant step): with a = exp(-dt/tau)
+    and c = (1 - a) tau / dt, y[i] = a y[i-1] + (1 - c) x[i] + (c - a) x[i-1], each sample's own dt.
+    Over a logger outage the temperature went on changing between the readings either side of it: the
+    lag relaxes for the outage's length towards that straight line (not towards the reading after it,
+    held for the whole outage).  Missing input samples (failed conversions) are interpolated in time."""
     x = np.asarray(x, dtype=np.float64)
-    if not np.all(np.isfinite(x)):
-        x = _hold_missing(x)
     t = np.asarray(time_s, dtype=np.float64)
+    if not np.all(np.isfinite(x)):
+        x = _interpolate_missing(x, t)
+    if len(x) == 0:
+        return x.copy()
     dt = sample_period(t)
     steps = np.diff(t)
     if len(steps) and np.max(np.abs(steps - dt)) > 0.5 * dt:
-        a = np.exp(-np.concatenate([[dt], steps]) / tau_s)
-        return linear_recurrence(a, (1.0 - a) * x, float(x[0]))
-    a = np.exp(-dt / tau_s)
+        h = np.concatenate([[dt], steps])
+        a = np.exp(-h / tau_s)
+        c = -np.expm1(-h / tau_s) * tau_s / h
+        x_prev = np.concatenate([[x[0]], x[:-1]])
+        return linear_recurrence(a, (1.0 - c) * x + (c - a) * x_prev, float(x[0]))
+    a = float(np.exp(-dt / tau_s))
+    c = float(-np.expm1(-dt / tau_s) * tau_s / dt)
     from scipy.signal import lfilter   # scipy.signal takes seconds to import: only when used
 
-    y, _ = lfilter([1 - a], [1, -a], x, zi=[a * x[0]])
+    # the state of an input and output that stood at x[0] before the first sample
+    zi = [a * x[0] + (c - a) * x[0]]
+    y, _ = lfilter([1.0 - c, c - a], [1.0, -a], x, zi=zi)
     return y
+
+
+def _interpolate_missing(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """NaN samples linearly interpolated in time between the readings either side (held at the ends);
+    all zeros when nothing is present."""
+    ok = np.isfinite(x)
+    if not ok.any():
+        return np.zeros_like(x)
+    return np.interp(t, t[ok], x[ok])
 
 
 def _hold_missing(x: np.ndarray) -> np.ndarray:
@@ -639,7 +662,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             out.append(Family("hysteresis", (("probe", p), ("form", "relay"), ("window_s", f"{w:.0f}")),
                               lambda x, thr, p=p, w=w: {f"relay{thr:.3g}(d{p}[{w:.0f}s])": x.relay(p, w, thr)},
                               "threshold_c_per_min", RELAY_THRESHOLDS, chosen_probe=mine,
-                              variants=len(RELAY_WINDOWS_S)))
+                              variants=len(RELAY_WINDOWS_S), stepwise=True))
         widths = _widths_for(inputs.temps[p])
         if widths:
             limits = (widths[0] / 2.0, max(widths[-1], _span(inputs.temps[p]) / 2.0))
@@ -660,7 +683,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                     return {f"relay{w:.3g}C({p},{start})": reversal_relay_state(path, w, memory_start(start, path, w))}
                 out.append(Family("hysteresis", (("probe", p), ("form", "reversal"), ("start", start)), reversal,
                                   "width_c", widths, chosen_probe=mine, limits=limits,
-                                  variants=len(MEMORY_STARTS), delayed=True))
+                                  variants=len(MEMORY_STARTS), delayed=True, stepwise=True))
 
     def warm(x: Inputs, tau):
         return {f"exp(-t_on/{tau:.0f})": np.nan_to_num(np.exp(-x.since_on / tau), nan=0.0)}
