@@ -165,3 +165,52 @@ def test_the_joint_refit_finds_a_memory_delay_and_charges_it():
     plain = fx.Family("hysteresis", fam.fixed, fam.builder, "width_c", fam.grid, chosen_probe=False,
                       variants=fam.variants)
     assert fam.penalty(100.0) - plain.penalty(100.0) == pytest.approx(np.log(100.0))
+
+
+def _memory_run(profile, start_rule: str, seed: int):
+    """A unit whose bias carries a play memory (width 5 C, on t1) that begins the run under
+    ``start_rule``: the history before the record, which no column shows."""
+    from bench.fit.base import Dataset
+    from tests.synth import DT, chamber_profile
+
+    rng = np.random.default_rng(seed)
+    t, air = chamber_profile(profile, dt=DT)
+    true_t1 = fx.first_order_lag(air, t, 600.0)
+    t1 = np.round((true_t1 + rng.normal(0, 0.005, len(t))) / 0.0625) * 0.0625
+    t2 = np.round(fx.first_order_lag(air, t, 1500.0) / 0.0625) * 0.0625
+    memory = fx.play_memory(true_t1, 5.0, fx.memory_start(start_rule, true_t1, 5.0))
+    u = true_t1 - 25.0
+    y = 0.1 + 0.02 * u + 4e-4 * u ** 2 + 0.4 * memory + rng.normal(0, 0.08, len(t))
+    cols = {"time_s": t, "temp_t1": t1, "temp_t2": t2, "gyro_x": y}
+    return Dataset(cols, {"gyro_id": "SYN-MEM", "sample_period_s": str(DT)}), memory
+
+
+def test_a_memory_starts_the_validation_run_in_the_state_that_run_shows_its_coefficients_as_trained():
+    from bench.fit.closeloop import close_loop
+    from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE
+
+    # the training run began as if it continued its first excursion, the validation run from neutral
+    train, m_tr = _memory_run(TRAIN_PROFILE, "continued", 21)
+    validate, m_va = _memory_run(VALIDATE_PROFILE, "neutral", 22)
+    report = close_loop(train, validate, "t1 + t1^2", channels=["x"], bin_c=None)
+    ch = report["channels"]["x"]
+    (memory,) = ch["effects_added"]
+    assert memory["kind"] == "hysteresis" and memory["params"]["probe"] == "t1"
+    assert memory["params"]["start"] == "continued"
+    assert memory["start_on_validation"] == "neutral"
+    assert "starts the validation run neutral" in ch["findings"]
+    from bench.fit.closeloop_report import render_close_loop_report
+    page = render_close_loop_report(report, train, validate)
+    assert "start on validation=neutral" in page[page.index("effects added"):]
+    # the validation error is the true model's (declared terms and the true memory fitted on TRAIN)
+    X = lambda run, m: np.column_stack([np.ones(len(m)), run.columns["temp_t1"], run.columns["temp_t1"] ** 2, m])
+    beta = np.linalg.lstsq(X(train, m_tr), train.columns["gyro_x"], rcond=None)[0]
+    from bench.fit.closeloop import std100
+    oracle = std100(validate.columns["gyro_x"] - X(validate, m_va) @ beta, validate.time)
+    assert ch["after"]["validation_std100_dph"] < 1.15 * oracle
+    assert ch["verdict"] == "explained"
+    # both runs begin under the same rule: the trained start is kept
+    same, _ = _memory_run(VALIDATE_PROFILE, "continued", 22)
+    ch = close_loop(train, same, "t1 + t1^2", channels=["x"], bin_c=None)["channels"]["x"]
+    assert [e["params"].get("start") for e in ch["effects_added"]] == ["continued"]
+    assert "start_on_validation" not in ch["effects_added"][0]

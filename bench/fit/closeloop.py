@@ -30,6 +30,7 @@ Which decision uses which run:
 from __future__ import annotations
 
 import re
+from itertools import product
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -214,14 +215,38 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         cols = [X] + [np.column_stack(list(e.columns(inputs).values())) for e in effs]
         return np.column_stack(cols)
 
-    def fit(effs):
+    # A memory's state at the validation run's first row depends on the unit's history before that
+    # run, which nothing recorded tells (the training run's start rule says how that run began, not
+    # this one).  As a system-identification tool compares a model with new data (the model fixed, its
+    # initial state estimated), each memory starts on the validation run under the start rule that fits
+    # that run best; its coefficient, width, delay and probe stay as TRAIN chose them.  It sets the error
+    # reported (after, the floor); whether an effect generalises or is the cause is judged without it.
+    starts_on_validation: dict[tuple[str, ...], tuple[fx.Effect, ...]] = {}
+
+    def on_validation(effs, beta) -> tuple[fx.Effect, ...]:
+        key = tuple(e.label for e in effs)
+        got = starts_on_validation.get(key)
+        if got is None:
+            got, best = tuple(effs), np.inf
+            for combo in product(*(fx.start_variants(e, problem.families) for e in effs)):
+                s = std100(np.where(diag, y_val - stack(combo, design.validate, inputs_va) @ beta, np.nan), t_va)
+                if s < best:        # ties keep the earlier combination: the training run's rules first
+                    got, best = combo, s
+            starts_on_validation[key] = got
+        return got
+
+    def fit(effs, start_fitted: bool = True):
         Xt = stack(effs, design.train, inputs_tr)
         beta = lstsq(Xt, y_train)
-        return (beta, y_train - Xt @ beta, y_val - stack(effs, design.validate, inputs_va) @ beta,
-                y_val - stack(effs, X_dep, inputs_va) @ beta)
+        veffs = on_validation(effs, beta) if start_fitted else effs
+        return (beta, y_train - Xt @ beta, y_val - stack(veffs, design.validate, inputs_va) @ beta,
+                y_val - stack(veffs, X_dep, inputs_va) @ beta)
 
     def val_in_range(effs) -> float:
-        return std100(np.where(diag, fit(effs)[2], np.nan), t_va)
+        # what an effect is worth on the validation run is judged with every memory under its training
+        # start rule: a start set to fit that run would lend a memory the run's own structure (a driver
+        # no column records), which is no evidence that it generalises or causes anything
+        return std100(np.where(diag, fit(effs, start_fitted=False)[2], np.nan), t_va)
 
     # VALIDATE: confirm each chosen effect on the in-range part (backward, never worse)
     kept = list(chosen)
@@ -254,7 +279,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         # error the training noise put into the fitted coefficients (a model of the true form has it too)
         _b, rt, rv, _d = fit(effs)
         vin = np.where(diag, rv, np.nan)
-        X_judged = stack(effs, design.validate, inputs_va)
+        X_judged = stack(on_validation(effs, _b), design.validate, inputs_va)
         # the floor over the blocks actually judged (an out-of-range stretch or an outage keeps its lag)
         iva, itr = window_numbers(t_va, vin, BLOCK_S), window_numbers(t_tr, rt, BLOCK_S)
 
@@ -324,6 +349,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     if step_found is not None:
         structure["train"]["bias_step"] = step_found
     added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
+    for entry, e, ve in zip(added, kept_t, on_validation(kept_t, fit(kept_t)[0])):
+        if ve is not e:
+            entry["start_on_validation"] = fx.start_rule(ve)
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
                 "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
                 "status": "did not generalise" if np.isfinite(w) else
@@ -464,6 +492,11 @@ def _findings(r: dict[str, Any]) -> str:
                      + _cv_text(ev)
                      + "; confirmed on validation "
                      f"(std100 {e['validation_std100_dph']:.4g} deg/h).")
+        if e.get("start_on_validation"):
+            lines.append(f"   Its memory starts the validation run {e['start_on_validation']} (the training run: "
+                         f"{e['params'].get('start', 'neutral')}): the state a run begins in depends on the "
+                         "unit's history before it, which nothing recorded tells, so it is the validation "
+                         "run's initial condition, set to fit that run; every coefficient stays as trained.")
         if e.get("ambiguous_with"):
             alts = "; ".join(f"{a['kind']} ({', '.join(f'{k}={v}' for k, v in a['params'].items())}, delta-BIC "
                              f"{a['bic_margin']:.1f} behind)" for a in e["ambiguous_with"])

@@ -503,6 +503,27 @@ MEMORY_DELAYS_S = tuple(float(d) for d in range(-300, 301, 30))
 MEMORY_DELAY_LIMITS_S = (-600.0, 600.0)
 
 
+def start_variants(effect: "Effect", families: list["Family"]) -> list["Effect"]:
+    """The effect under each start rule of its memory (``MEMORY_STARTS``), its width and delay kept:
+    the same family but for the start (itself first); [effect] for an effect without a start rule."""
+    def identity(f: "Family") -> tuple:
+        return f.kind, tuple(kv for kv in f.fixed if kv[0] != "start")
+
+    own = identity(effect.family)
+    if not effect.family.delayed or dict(effect.family.fixed).get("form") not in ("gradual", "reversal"):
+        return [effect]
+    out = [effect]
+    for f in families:
+        if identity(f) == own and f.label != effect.family.label:
+            out.append(Effect(f.with_delay(effect.family.delay_s), effect.value))
+    return out
+
+
+def start_rule(effect: "Effect") -> str:
+    """The start rule of a memory effect (``MEMORY_STARTS``; a gradual memory without one is neutral)."""
+    return str(dict(effect.family.fixed).get("start", "neutral"))
+
+
 def first_excursion_sign(temp: np.ndarray, width_c: float) -> float:
     """+1 / -1: the direction of the first move of at least ``width_c`` away from the start temperature
     (+1 when the run never moves that far)."""
