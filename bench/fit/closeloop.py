@@ -11,8 +11,9 @@ Which decision uses which run:
 3. VALIDATE, in range: the validation run is split (``bench.fit.validity``) into the part where every
    declared input lies inside its training range and the rest.  The declared model's inputs are never
    clipped for the diagnosis.  Each chosen effect is confirmed there: one whose removal does not make
-   the in-range std of 100-s means worse "did not generalise" and is kept out of "after" (so the
-   validation error is never made worse); its channel is not called explained.  Effects that leave
+   the in-range std of 100-s means worse, or whose predicted contribution the validation residual does
+   not hold beyond the noise (a one-sided 1 % test), "did not generalise" and is kept out of "after"
+   (so the validation error is never made worse); its channel is not called explained.  Effects that leave
    the residual above the noise floor and remove less than half of its variance above that floor are
    "not the cause": they fit a share of a driver no candidate models, and are left out.
 4. Noise floor (``bench.fit.noisefloor``) from the Allan variance of the final residuals (training
@@ -53,6 +54,8 @@ AT_FLOOR_RATIO = 1.2
 STOP_RATIO = 1.15
 # added effects must remove at least this share of the validation residual's variance above the floor
 MIN_EXCESS_SHARE = 0.5
+# one-sided 1 % level of the validation skill test (an added effect's prediction found in the validation run)
+Z_SKILL = 2.326
 MIN_DIAGNOSIS_BLOCKS = 12
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
@@ -248,9 +251,28 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         # no column records), which is no evidence that it generalises or causes anything
         return std100(np.where(diag, fit(effs, start_fitted=False)[2], np.nan), t_va)
 
-    # VALIDATE: confirm each chosen effect on the in-range part (backward, never worse)
+    def validation_skill(effs, e) -> float:
+        """z of the one-sided test that the in-range validation residual without ``e`` holds what ``e``
+        predicts there beyond the noise: r'd / sqrt(d'Gd) over the judged 100-s block means (both
+        centred), d the difference e makes to the prediction, G their covariance under the training
+        residual's noise model.  Under "e is not there" r is noise independent of d (fitted on TRAIN)."""
+        r_without = fit(tuple(k for k in effs if k is not e), start_fitted=False)[2]
+        d = r_without - fit(effs, start_fitted=False)[2]
+        ok = diag & np.isfinite(r_without) & np.isfinite(d)
+        rb, db = (window_means(t_va, np.where(ok, v, np.nan), BLOCK_S) for v in (r_without, d))
+        if len(rb) < 3:
+            return np.inf
+        rb, db = rb - rb.mean(), db - db.mean()
+        spread = float(db @ block_covariance(noise_for(tuple(effs)), window_numbers(t_va, np.where(ok, d, np.nan), BLOCK_S)) @ db)
+        return float(rb @ db / np.sqrt(spread)) if spread > 0 else np.inf
+
+    # VALIDATE: confirm each chosen effect on the in-range part (backward, never worse): an effect whose
+    # removal does not worsen the in-range validation error, or whose predicted contribution the
+    # validation residual does not hold beyond the noise (``validation_skill`` below Z_SKILL), is not
+    # confirmed
     kept = list(chosen)
     not_generalised: list[tuple[fx.Effect, float, float]] = []
+    skill_z: dict[str, float] = {}
     while kept:
         with_all = val_in_range(tuple(kept))
         drops = [(val_in_range(tuple(k for k in kept if k is not e)), e) for e in kept]
@@ -258,6 +280,13 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         if worst_val <= with_all:
             not_generalised.append((worst, with_all, worst_val))
             kept.remove(worst)
+            continue
+        skill = [(validation_skill(tuple(kept), e), e) for e in kept]
+        z, weakest = min(skill, key=lambda s: s[0])
+        if z < Z_SKILL:
+            not_generalised.append((weakest, with_all, val_in_range(tuple(k for k in kept if k is not weakest))))
+            skill_z[weakest.label] = z
+            kept.remove(weakest)
         else:
             break
     # what is left must still stand on the training evidence without the effects that were dropped
@@ -355,7 +384,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
                 "validation_std100_with_dph": w, "validation_std100_without_dph": wo,
                 "status": "did not generalise" if np.isfinite(w) else
-                          "not significant on train without the effects that did not generalise"}
+                          "not significant on train without the effects that did not generalise",
+                **({"validation_skill_z": skill_z[e.label]} if e.label in skill_z else {})}
                for e, w, wo in not_generalised]
     if not_the_cause is not None:
         effs, w, wo, share = not_the_cause
@@ -517,6 +547,13 @@ def _findings(r: dict[str, Any]) -> str:
                          f"{100 * e['share_of_excess_variance']:.0f} % of the variance above the noise floor: "
                          "they fit a share of something no candidate models, so they are not its cause and are "
                          "left out.")
+            continue
+        if "validation_skill_z" in e:
+            lines.append(f"{e['kind']} ({params}) was chosen on the training run but did not generalise: what it "
+                         f"predicts for the validation run is not there beyond the noise (skill z "
+                         f"{e['validation_skill_z']:.2f}, below {Z_SKILL}; in-range validation std100 "
+                         f"{e['validation_std100_without_dph']:.4g} without it, {e['validation_std100_with_dph']:.4g} "
+                         "with it); it is left out.")
             continue
         lines.append(f"{e['kind']} ({params}) was chosen on the training run but did not generalise: the "
                      f"in-range validation std100 is {e['validation_std100_without_dph']:.4g} without it and "
