@@ -31,8 +31,8 @@ Which decision uses which run:
 from __future__ import annotations
 
 import re
-from itertools import product
 from dataclasses import dataclass, field
+from itertools import product
 from typing import Any
 
 import numpy as np
@@ -238,12 +238,20 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             starts_on_validation[key] = got
         return got
 
+    fits: dict[tuple, tuple] = {}
+
     def fit(effs, start_fitted: bool = True):
-        Xt = stack(effs, design.train, inputs_tr)
-        beta = lstsq(Xt, y_train)
-        veffs = on_validation(effs, beta) if start_fitted else effs
-        return (beta, y_train - Xt @ beta, y_val - stack(veffs, design.validate, inputs_va) @ beta,
-                y_val - stack(veffs, X_dep, inputs_va) @ beta)
+        # the same subsets are fitted again and again (the backward pass, its skill test, the floors, the
+        # entries): each once
+        key = (tuple(e.label for e in effs), start_fitted)
+        got = fits.get(key)
+        if got is None:
+            Xt = stack(effs, design.train, inputs_tr)
+            beta = lstsq(Xt, y_train)
+            veffs = on_validation(effs, beta) if start_fitted else effs
+            got = fits[key] = (beta, y_train - Xt @ beta, y_val - stack(veffs, design.validate, inputs_va) @ beta,
+                               y_val - stack(veffs, X_dep, inputs_va) @ beta)
+        return got
 
     def val_in_range(effs) -> float:
         # what an effect is worth on the validation run is judged with every memory under its training
@@ -281,10 +289,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             not_generalised.append((worst, with_all, worst_val))
             kept.remove(worst)
             continue
-        skill = [(validation_skill(tuple(kept), e), e) for e in kept]
-        z, weakest = min(skill, key=lambda s: s[0])
+        z, without, weakest = min(((validation_skill(tuple(kept), e), v, e) for v, e in drops), key=lambda s: s[0])
         if z < Z_SKILL:
-            not_generalised.append((weakest, with_all, val_in_range(tuple(k for k in kept if k is not weakest))))
+            not_generalised.append((weakest, with_all, without))
             skill_z[weakest.label] = z
             kept.remove(weakest)
         else:
@@ -378,7 +385,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     if step_found is not None:
         structure["train"]["bias_step"] = step_found
     added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
-    for entry, e, ve in zip(added, kept_t, on_validation(kept_t, fit(kept_t)[0])):
+    for entry, e, ve in zip(added, kept_t, on_validation(kept_t, beta)):
         if ve is not e:
             entry["start_on_validation"] = fx.start_rule(ve)
     dropped = [{"kind": e.kind, "params": e.params, "terms": list(e.columns(fine).keys()),
@@ -397,15 +404,15 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     names = list(design.names) + [nm for e in kept_t for nm in e.columns(fine).keys()]
     floor_doc = {**floor_val, "train_record": floor_tr, "noise_model": model.summary(),
                  "method": "Allan variance of the final residuals (train + in-range validation; the "
-                           "training residual alone when the floor with both lies above the upper end of "
-                           "the training noise's own 90 %% interval: structure the model misses on the "
-                           "validation run is not noise) fitted with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
+                           "training residual alone when the floor with both lies above both the upper end "
+                           "of the training noise's own 90 %% interval and %.1fx the training-only floor: "
+                           "structure the model misses on the validation run is not noise) fitted with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
                            "out of the floor) at taus <= %.0f s, weighted by each tau's degrees of freedom; "
                            "expected std of 100-s means over the in-range validation blocks at their "
                            "lags (gaps keep their length) plus the spread the training noise puts into the "
                            "fitted coefficients (B G B' under the same noise terms); interval and limit from "
                            "that quadratic form's eigenvalues (Pearson three-moment chi-square) with the "
-                           "fitted noise level's own uncertainty; 90 %% sampling interval" % model.tau_max_s}
+                           "fitted noise level's own uncertainty; 90 %% sampling interval" % (AT_FLOOR_RATIO, model.tau_max_s)}
     report = {
         "declared_model": declared_name,
         "declared_terms": list(design.names),
@@ -429,8 +436,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                                                "cross-validation over contiguous train segments)",
             "generalisation_check": diag_label,
             "noise_floor": ("train residual and in-range validation residual" if floor_val["validation_residual_used"]
-                            else "train residual (the in-range validation residual's floor is above the "
-                                 "training noise's interval)") + ", taus <= %.0f s" % model.tau_max_s,
+                            else "train residual (with the in-range validation residual the floor lies "
+                                 "above the training noise's interval and %.1fx its floor)" % AT_FLOOR_RATIO)
+                           + ", taus <= %.0f s" % model.tau_max_s,
             "verdict": judged_on,
         },
         "search_steps": steps,

@@ -446,7 +446,7 @@ def temperature_path(time_s: np.ndarray, temp: np.ndarray) -> np.ndarray:
     ok = np.isfinite(x)
     if ok.sum() < 2:
         return _hold_missing(x)
-    x = np.interp(t, t[ok], x[ok])
+    x = _interpolate_missing(x, t)
     dt = sample_period(t)
     half = int(PATH_SMOOTH_S / dt / 2.0)
     if half < 1:
@@ -510,8 +510,6 @@ def start_variants(effect: "Effect", families: list["Family"]) -> list["Effect"]
         return f.kind, tuple(kv for kv in f.fixed if kv[0] != "start")
 
     own = identity(effect.family)
-    if not effect.family.delayed or dict(effect.family.fixed).get("form") not in ("gradual", "reversal"):
-        return [effect]
     out = [effect]
     for f in families:
         if identity(f) == own and f.label != effect.family.label:
