@@ -248,3 +248,73 @@ def test_structure_the_model_misses_on_the_validation_run_does_not_raise_its_noi
     assert loud["noise_floor_dph"] < 1.2 * quiet["noise_floor_dph"]      # 1.44x with it read as noise
     assert loud["after"]["validation_std100_dph"] > 5 * loud["noise_floor_dph"]
     assert loud["verdict"] == "unexplained_structure_remains"
+
+
+def test_a_richer_form_of_an_effect_is_taken_over_its_simpler_form_only_on_strong_evidence():
+    # the declared cubic evaluated at the own probe's lag (the polynomial form) holds the linear lag
+    # (lag - T) of that probe; a training run that prefers it by less than DBIC_MIN keeps the linear one
+    from bench.fit.closeloop_search import DBIC_MIN, TIE_DBIC, search
+
+    t = np.arange(5.0, 60_000.0, FINE_S)
+    temp = np.interp(t, [0, 4000, 10000, 16000, 22000, 30000, 36000, 44000, 52000, 60000],
+                     [20, 50, 50, 0, 0, 40, -10, -10, 30, 30])
+    fine = _inputs(t, temp)
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    lags = [f for f in fx.families(ctx, fine) if f.kind == "thermal_lag"]
+    linear = next(f for f in lags if f.fixed == (("probe", "t1"),))
+    poly = next(f for f in lags if dict(f.fixed).get("form") == "polynomial")
+    assert poly.contains(linear) and not linear.contains(poly)
+    lag = fx.first_order_lag(temp, t, 1500.0)
+    u = temp - 25.0
+
+    def chosen_form(cubic: float) -> tuple[float, str]:
+        y = 0.02 * (lag - temp) + cubic * (lag - 25.0) ** 3 + np.random.default_rng(3).normal(0, 0.05, len(t))
+        ev = evidence_blocks(t, {"y": y, "one": np.ones_like(t), "u1": u, "u2": u ** 2, "u3": u ** 3})
+        problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[k] for k in ("one", "u1", "u2", "u3")]),
+                                fine=fine, declared_signals_b=np.zeros((len(ev["y"]), 0)), families=lags,
+                                fine_valid=np.isfinite(y))
+        lin, _ = problem.best_value(linear, ())
+        pol, _ = problem.best_value(poly, ())
+        n_eff = problem.score((lin,), with_cv=False).n_eff
+        chosen, _steps = search(problem)
+        assert len(chosen) == 1
+        return problem.bic((lin,), n_eff) - problem.bic((pol,), n_eff), dict(chosen[0].family.fixed).get("form", "linear")
+
+    margin, form = chosen_form(8e-7)         # a trace of curvature: the richer form fits better, not by much
+    assert TIE_DBIC < margin < DBIC_MIN
+    assert form == "linear"
+    margin, form = chosen_form(2e-6)
+    assert margin > DBIC_MIN
+    assert form == "polynomial"
+
+
+def test_a_rate_window_the_training_run_does_not_determine_is_the_declared_models_own():
+    # a rate effect on a noisy run: every window from 60 to 300 s fits the training run alike (within
+    # TIE_DBIC), so the scan's minimum is set by the noise; the window is settled on the declared
+    # model's own (120 s).  A run that pins the window (600 s, little noise) keeps it
+    from bench.fit.closeloop_search import settle_rate_windows
+
+    t = np.arange(5.0, 40_000.0, FINE_S)
+    temp = np.interp(t, [0, 3000, 9000, 12000, 18000, 24000, 30000, 40000], [20, 50, 50, 0, 0, 40, -10, 30])
+    fine = _inputs(t, temp)
+    rate = fx.Family("rate", (("probe", "t1"),), lambda x, w: {"r": x.rate("t1", w)}, fx.RATE_WINDOW_PARAM,
+                     fx.RATE_WINDOWS_S, chosen_probe=False)
+
+    def problem(window_s: float, noise: float) -> SearchProblem:
+        y = 0.2 * fx.rate_c_per_min(temp, t, window_s) + np.random.default_rng(1).normal(0, noise, len(t))
+        p = _problem(fine, y, [rate])
+        p.rate_window_s = 120.0
+        return p
+
+    noisy = problem(120.0, 0.3)
+    best, _ = noisy.best_value(rate, ())
+    assert not best.value == pytest.approx(120.0, rel=0.05)        # the scan lands elsewhere
+    (settled,) = settle_rate_windows(noisy, (best,))
+    assert settled.value == pytest.approx(120.0)
+    pinned = problem(600.0, 0.01)
+    best, _ = pinned.best_value(rate, ())
+    (settled,) = settle_rate_windows(pinned, (best,))
+    assert settled.value == pytest.approx(600.0, rel=0.03)
+    # no declared window (a model without a rate term's filter): nothing is moved
+    pinned.rate_window_s = None
+    assert settle_rate_windows(pinned, (rate.at(300.0),))[0].value == 300.0

@@ -176,7 +176,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[f"x{j}"] for j in range(k)]), fine=fine,
                             declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
                             else np.zeros((len(ev["y"]), 0)),
-                            families=fx.families(ctx, inputs_tr), fine_valid=np.isfinite(on_fine["y"]))
+                            families=fx.families(ctx, inputs_tr), fine_valid=np.isfinite(on_fine["y"]),
+                            rate_window_s=ctx.rate_window_s)
     # the search stops once the training residual is within STOP_RATIO of the white part of the noise
     # floor (from the declared model's residual at short taus; its flicker part is not trusted here:
     # slow structure still in that residual reads as flicker)

@@ -86,6 +86,9 @@ class SearchProblem:
     declared_signals_b: np.ndarray  # (n_blocks, s) 100-s means of the declared model's inputs
     families: list[fx.Family]
     n_eff_noise: float = 10.0      # effective n of the 100-s residual if it were noise alone (lower bound)
+    # the declared model's own rate filter window (s): where the training run does not tell a rate
+    # effect's window apart from it, the effect's rate is filtered alike (``settle_rate_windows``)
+    rate_window_s: float | None = None
     fine_valid: np.ndarray | None = None   # fine-grid rows where the target was measured
     # the noise model (``noisefloor.NoiseModel``) of the full-rate training residual of a design with
     # these effects: the null hypothesis of the GLS gate (None: no GLS gate)
@@ -336,7 +339,10 @@ class SearchProblem:
                     cand, _s = self.best_value(fam, others, refine_delay=refine_delay and fam == eff.family)
                     trial = others[:i] + (cand,) + others[i:]
                     b = self.bic(trial, n_eff)
-                    if b < best - 1e-9:             # BIC: another form or probe pays for its columns
+                    # BIC: another form or probe pays for its columns, and moves the choice only beyond a
+                    # tie (a richer form of the effect in place: on strong evidence, ``Family.nests``)
+                    margin = 1e-9 if fam == eff.family else DBIC_MIN if fam.contains(eff.family) else TIE_DBIC
+                    if b < best - margin:
                         current, best, eff, changed = trial, b, cand, True
             if not changed:
                 break
@@ -349,10 +355,12 @@ class SearchProblem:
 
     def swap(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
         """Replace an added effect by another family (any kind) when that lowers the BIC (effective n
-        of the current model) by more than SWAP_DBIC: an early choice made while another effect was
-        still missing is revisited once that effect is in."""
+        of the current model) by more than SWAP_DBIC (a richer form of the effect in place,
+        ``fx.Family.nests``: by more than DBIC_MIN): an early choice made while another effect was still
+        missing is revisited once that effect is in.  A lone effect is left as chosen: it was ranked
+        against every family at its step."""
         current = tuple(effects)
-        if not current:
+        if len(current) < 2:
             return current
         n_eff = self.score(current, with_cv=False).n_eff
         for i in range(len(current)):
@@ -369,7 +377,8 @@ class SearchProblem:
                 cand, _s = self.best_value(fam, others)
                 trial = others[:i] + (cand,) + others[i:]
                 b = self.bic(trial, n_eff)
-                if b < best_bic - SWAP_DBIC:
+                margin = DBIC_MIN if cand.family.contains(current[i].family) else SWAP_DBIC
+                if b < best_bic - margin:
                     current, best_bic = trial, b
         return current
 
@@ -555,6 +564,11 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
             # than a bare mention"): the one with the fewest searched parameters and choices is taken
             ties = [r for r in passing if bic[id(r)] - bic[id(pick)] < TIE_DBIC]
             pick = min(ties, key=lambda r: (r[0][0].family.n_nonlinear, bic[id(r)]))
+            # a richer form of an effect is taken over its simpler form only on strong evidence
+            simpler = [r for r in passing if pick[0][0].family.contains(r[0][0].family)
+                       and bic[id(r)] - bic[id(pick)] < DBIC_MIN]
+            if simpler:
+                pick = simpler[0]
         if passing_pairs and (pick is None or (bic[id(passing_pairs[0])] < bic[id(pick)] - PAIR_DBIC
                                                and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
                                                and not _at_floor(pick, chosen, stop_at))):
@@ -575,7 +589,57 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
                       "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
     chosen = prune(problem, chosen, steps)
-    return centre_stepwise(problem, drop_drift_that_is_a_step(problem, chosen, steps)), steps
+    chosen = centre_stepwise(problem, drop_drift_that_is_a_step(problem, chosen, steps))
+    settled = settle_rate_windows(problem, chosen)
+    moved = [{"effect": a.label, "window_s": b.value, "declared_rate_window_s": problem.rate_window_s}
+             for a, b in zip(chosen, settled) if a.value != b.value]
+    if moved:
+        steps.append({"rate_window_settled": moved})
+    return settled, steps
+
+
+RATE_WINDOW_BISECTIONS = 8
+
+
+def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+    """A rate effect's filter window (``fx.RATE_WINDOW_PARAM``) that the training run does not tell
+    apart from the declared model's own (``SearchProblem.rate_window_s``: the training BIC, its effective
+    n, within ``TIE_DBIC`` of the best window's, the others held) is the declared one; otherwise the
+    window nearest it, in log scale, that the training run still cannot tell from the best.  A window is
+    a smoothing of the readings, not a physical constant: where the run cannot pin it, the scan's
+    minimum is set by the noise, and a validation run with steeper ramps or a noisier rate pays for it."""
+    target = problem.rate_window_s
+    if target is None or not effects:
+        return effects
+    out = list(effects)
+    n_eff = problem.score(tuple(out), with_cv=False).n_eff
+    for i, e in enumerate(out):
+        if e.family.param != fx.RATE_WINDOW_PARAM or e.value is None or e.value <= 0:
+            continue
+        lo_lim, hi_lim = e.family.bounds
+        goal = float(np.clip(target, lo_lim, hi_lim))
+        others = tuple(out[:i] + out[i + 1:])
+        best = problem.ssr(tuple(out))
+        if not (np.isfinite(best) and best > 0):
+            continue
+
+        def alike(w: float, fam=e.family, others=others, best=best) -> bool:
+            got = problem.ssr(others + (fam.at(w),))
+            return bool(np.isfinite(got) and n_eff * np.log(got / best) < TIE_DBIC)
+
+        if alike(goal):
+            out[i] = e.family.at(goal)
+            continue
+        inside, outside = np.log(e.value), np.log(goal)
+        for _ in range(RATE_WINDOW_BISECTIONS):
+            mid = 0.5 * (inside + outside)
+            if alike(float(np.exp(mid))):
+                inside = mid
+            else:
+                outside = mid
+        if abs(inside - np.log(e.value)) > 1e-9:
+            out[i] = e.family.at(float(np.exp(inside)))
+    return tuple(out)
 
 
 # relative change of the training SSR below which two parameter values fit the training run alike

@@ -64,6 +64,7 @@ LAG_MAX_RUNS = 2.0
 ABSOLUTE_LAG_MIN_S = 300.0
 WARMUP_TAUS_S = (30.0, 60.0, 150.0, 300.0, 600.0, 1200.0, 2400.0, 4800.0, 9600.0)
 RATE_WINDOWS_S = (60.0, 120.0, 300.0, 600.0, 1200.0)      # dT/dt filter windows (lesson 9)
+RATE_WINDOW_PARAM = "window_s"    # the searched parameter of the rate effects: their filter's window
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
 RELAY_WINDOWS_S = (60.0, 120.0, 300.0, 600.0)                   # the relay's rate filter
 GRADUAL_WIDTHS_C = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)           # C
@@ -213,6 +214,13 @@ class Family:
     # the columns change only where the parameter crosses a value the data reach (a relay's threshold,
     # a trigger's width): the training run pins it to an interval, not to a point
     stepwise: bool = False
+    # the family of the same kind whose columns, with the declared model's, lie within this one's (its
+    # ``fixed``): a richer form of that effect, taken only on strong evidence over it
+    nests: tuple[tuple[str, str], ...] | None = None
+
+    def contains(self, other: "Family") -> bool:
+        """This family is a richer form of ``other`` (``nests``)."""
+        return self.nests is not None and other.kind == self.kind and other.fixed == self.nests
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -656,8 +664,9 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             v = first_order_lag(x.temps[p], x.time, tau) - T0_C
             return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
                     for j in range(1, order + 1)}
+        # it holds the linear lag of the own probe (lag - T: its first power and the declared T)
         out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", lag_taus,
-                          chosen_probe=False, limits=lag_limits))
+                          chosen_probe=False, limits=lag_limits, nests=(("probe", own),)))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
@@ -666,15 +675,15 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     for p in probes:
         mine = p != own
         out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
-                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+                          RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("rate_squared", (("probe", p),),
                           lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.own_rate(
                               ("rate^2", p, round(float(w), 3)), lambda s: s.rate(p, w) ** 2)},
-                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+                          RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
         out.append(Family("temp_rate_cross", (("probe", p),),
                           lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": x.own_rate(
                               ("temp*rate", p, round(float(w), 3)), lambda s: (s.temps[p] - T0_C) * s.rate(p, w))},
-                          "window_s", RATE_WINDOWS_S, chosen_probe=mine))
+                          RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
         # the relay switches on the rate as the element sees it: its smoothing (the rate filter's
         # window) is the element's own, unknown, so each window is a variant of the relay
         for w in RELAY_WINDOWS_S:
