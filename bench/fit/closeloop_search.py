@@ -598,9 +598,6 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     return settled, steps
 
 
-RATE_WINDOW_BISECTIONS = 8
-
-
 def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
     """A rate effect's filter window (``fx.RATE_WINDOW_PARAM``) that the training run does not tell
     apart from the declared model's own (``SearchProblem.rate_window_s``: the training BIC, its effective
@@ -630,13 +627,7 @@ def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) 
         if alike(goal):
             out[i] = e.family.at(goal)
             continue
-        inside, outside = np.log(e.value), np.log(goal)
-        for _ in range(RATE_WINDOW_BISECTIONS):
-            mid = 0.5 * (inside + outside)
-            if alike(float(np.exp(mid))):
-                inside = mid
-            else:
-                outside = mid
+        inside = _last_alike(lambda lw: alike(float(np.exp(lw))), np.log(e.value), np.log(goal))
         if abs(inside - np.log(e.value)) > 1e-9:
             out[i] = e.family.at(float(np.exp(inside)))
     return tuple(out)
@@ -645,7 +636,19 @@ def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) 
 # relative change of the training SSR below which two parameter values fit the training run alike
 SAME_FIT_RTOL = 1e-9
 CENTRE_START_STEP = 0.005      # ln units: the first step out from the value chosen
-CENTRE_BISECTIONS = 8
+EDGE_BISECTIONS = 8
+
+
+def _last_alike(alike: Callable[[float], bool], inside: float, outside: float) -> float:
+    """The edge between ``inside``, where ``alike`` holds, and ``outside``, where it does not (ln units),
+    bisected ``EDGE_BISECTIONS`` times: the value nearest ``outside`` found alike."""
+    for _ in range(EDGE_BISECTIONS):
+        mid = 0.5 * (inside + outside)
+        if alike(mid):
+            inside = mid
+        else:
+            outside = mid
+    return inside
 
 
 def centre_stepwise(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
@@ -685,12 +688,7 @@ def centre_stepwise(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> t
                 else:
                     outside = nxt
             if outside is not None:
-                for _ in range(CENTRE_BISECTIONS):
-                    mid = 0.5 * (inside + outside)
-                    if alike(mid):
-                        inside = mid
-                    else:
-                        outside = mid
+                inside = _last_alike(alike, inside, outside)
             edges.append(inside)
         centre = 0.5 * (edges[0] + edges[1])
         if abs(centre - lv0) > CENTRE_START_STEP:
