@@ -318,3 +318,34 @@ def test_a_rate_window_the_training_run_does_not_determine_is_the_declared_model
     # no declared window (a model without a rate term's filter): nothing is moved
     pinned.rate_window_s = None
     assert settle_rate_windows(pinned, (rate.at(300.0),))[0].value == 300.0
+
+
+def test_the_exchange_pass_replaces_an_effect_that_stands_in_for_a_missing_one():
+    # the truth: a time drift and a lag of the own probe.  A set where a slow lag of another probe stands
+    # in for the drift is moved, one effect at a time, to the true one; the true set is left as it is
+    from bench.fit.closeloop_search import exchange
+
+    t = np.arange(5.0, 36_000.0, FINE_S)
+    t1 = np.interp(t, [0, 5000, 11000, 18000, 25000, 36000], [20, 45, 45, 5, 5, 30])
+    t2 = 0.6 * t1 + 8.0 + 4.0 * np.sin(2 * np.pi * t / 14_000.0)
+    fine = fx.Inputs(time=t, temps={"t1": t1, "t2": t2},
+                     rates={p: fx.rate_c_per_min(v, t, 300.0) for p, v in (("t1", t1), ("t2", t2))},
+                     since_on=t - t[0], power_known=False, up=None, input_rate=None)
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1", "t2"), channels=("x",), latitude_deg=None)
+    fams = {f.label: f for f in fx.families(ctx, fine)}
+    lag, drift = fams["thermal_lag(probe=t1)"], fams["time_drift()"]
+    y = (0.03 * (fx.first_order_lag(t1, t, 900.0) - t1) + 0.05 * (t - t[0]) / 3600.0
+         + np.random.default_rng(5).normal(0, 0.05, len(t)))
+    ev = evidence_blocks(t, {"y": y, "one": np.ones_like(t), "u": t1 - 25.0})
+    problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev["one"], ev["u"]]), fine=fine,
+                            declared_signals_b=np.zeros((len(ev["y"]), 0)), families=list(fams.values()),
+                            fine_valid=np.isfinite(y))
+    stand_in, _ = problem.best_value(fams["thermal_lag(probe=t2, form=absolute)"], (lag.at(900.0),))
+    steps: list = []
+    moved = exchange(problem, (stand_in, lag.at(900.0)), steps)
+    assert {e.family for e in moved} == {drift, lag}
+    assert [s["exchanged"] for s in steps] == [stand_in.label]
+    assert next(e for e in moved if e.family == lag).value == pytest.approx(900.0, rel=0.1)
+    truth = problem.refit_params((drift.at(None), lag.at(900.0)), keep_families=True)
+    steps = []
+    assert exchange(problem, truth, steps) == truth and steps == []

@@ -7,7 +7,7 @@ Which decision uses which run:
    on the training run, Earth rate removed when orientation and latitude are known.
 2. TRAIN: the effects it lacks are chosen (``bench.fit.closeloop_search``: every family of
    ``bench.fit.effects`` on every probe, every nonlinear parameter searched; delta-BIC with effective
-   n, HAC Wald, blocked cross-validation; joint re-fits; pairs).  The validation run is not looked at.
+   n, HAC Wald, blocked cross-validation; joint re-fits; pairs; exchanges).  The validation run is not looked at.
 3. VALIDATE, in range: the validation run is split (``bench.fit.validity``) into the part where every
    declared input lies inside its training range and the rest.  The declared model's inputs are never
    clipped for the diagnosis.  Each chosen effect is confirmed there: one whose removal does not make

@@ -22,7 +22,9 @@ the three gates (delta-BIC > 10, HAC p < 1e-3, cross-validated error lower by >=
 delta-BIC (which charges every column and every searched parameter) and the best is added.  Then the nonlinear parameters of ALL added effects are
 re-fitted jointly (coordinate sweeps; probe, pair and form re-chosen within each kind).  When no
 single addition passes or when a pair does clearly better than the best single (BIC), pairs of the
-strongest families are added together.  Stop when nothing passes or after ``MAX_EFFECTS``.
+strongest families are added together.  Stop when nothing passes or after ``MAX_EFFECTS``.  Then an
+exchange pass (``exchange``): each chosen effect in turn is replaced by the family that best fills its
+place when that lowers the BIC; then the backward pass (``prune``).
 """
 from __future__ import annotations
 
@@ -50,6 +52,8 @@ PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 SWAP_DBIC = 2.0
+EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
+EXCHANGE_ROUNDS = 4
 # two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:
 # below 6 the evidence for one over the other is at most "positive", never "strong")
 AMBIGUOUS_DBIC = 6.0
@@ -588,6 +592,7 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
                       "evidence": ev, "train_std100_before_step": left,
                       "after_joint_refit": [e.label for e in chosen]})
+    chosen = exchange(problem, chosen, steps)
     chosen = prune(problem, chosen, steps)
     chosen = centre_stepwise(problem, drop_drift_that_is_a_step(problem, chosen, steps))
     settled = settle_rate_windows(problem, chosen)
@@ -596,6 +601,46 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     if moved:
         steps.append({"rate_window_settled": moved})
     return settled, steps
+
+
+def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
+             steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
+    """Exchange pass on TRAIN once the forward selection is done: each chosen effect in turn is taken
+    out, the others' parameters re-fitted without it, and the families that best fill its place (any
+    kind, ``EXCHANGE_CANDIDATES`` of them by training SSR) tried with every continuous parameter
+    re-fitted jointly; the exchange that lowers the BIC most (effective n of the current model), by more
+    than ``SWAP_DBIC`` (a richer form of the effect it replaces: ``DBIC_MIN``), is made, and the pass
+    repeats.  Forward selection commits to its first choices: an early effect bent to stand in for
+    several that were still missing (a lag with a time constant beyond the run standing in for a time
+    drift) keeps the later choices on the wrong probe; the exchange lets the set move off that path one
+    effect at a time."""
+    current = tuple(effects)
+    if len(current) < 2:
+        return current
+    for _ in range(EXCHANGE_ROUNDS):
+        n_eff = problem.score(current, with_cv=False).n_eff
+        here = problem.bic(current, n_eff)
+        best: tuple[float, float, int, tuple[fx.Effect, ...]] | None = None    # beyond margin, dBIC, slot, set
+        for i, out in enumerate(current):
+            held = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
+            taken = {e.family for e in held} | {out.family}
+            coarse = sorted((min(problem.ssr(held + (f.at(v),)) for v in (f.grid or (None,))), k)
+                            for k, f in enumerate(problem.families) if f not in taken)
+            for _s, k in coarse[:EXCHANGE_CANDIDATES]:
+                fam = problem.families[k]
+                cand, _c = problem.best_value(fam, held)
+                trial = problem.refit_params(held[:i] + (cand,) + held[i:], keep_families=True)
+                margin = DBIC_MIN if fam.contains(out.family) else SWAP_DBIC
+                gain = here - problem.bic(trial, n_eff)
+                if gain > margin and (best is None or gain - margin > best[0]):
+                    best = (gain - margin, gain, i, trial)
+        if best is None:
+            break
+        _beyond, gain, i, trial = best
+        steps.append({"exchanged": current[i].label, "for": trial[i].label, "delta_bic": float(gain),
+                      "after_exchange": [e.label for e in trial]})
+        current = trial
+    return current
 
 
 def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
