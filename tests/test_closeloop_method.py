@@ -320,10 +320,10 @@ def test_a_rate_window_the_training_run_does_not_determine_is_the_declared_model
     assert settle_rate_windows(pinned, (rate.at(300.0),))[0].value == 300.0
 
 
-def test_the_exchange_pass_replaces_an_effect_that_stands_in_for_a_missing_one():
+def test_the_exchange_pass_replaces_or_merges_effects_that_stand_in_for_a_missing_one():
     # the truth: a time drift and a lag of the own probe.  A set where a slow lag of another probe stands
     # in for the drift is moved, one effect at a time, to the true one; the true set is left as it is
-    from bench.fit.closeloop_search import exchange
+    from bench.fit.closeloop_search import DBIC_MIN, exchange
 
     t = np.arange(5.0, 36_000.0, FINE_S)
     t1 = np.interp(t, [0, 5000, 11000, 18000, 25000, 36000], [20, 45, 45, 5, 5, 30])
@@ -344,8 +344,14 @@ def test_the_exchange_pass_replaces_an_effect_that_stands_in_for_a_missing_one()
     steps: list = []
     moved = exchange(problem, (stand_in, lag.at(900.0)), steps)
     assert {e.family for e in moved} == {drift, lag}
-    assert [s["exchanged"] for s in steps] == [stand_in.label]
+    assert [s["exchanged"] for s in steps] == [[stand_in.label]]
     assert next(e for e in moved if e.family == lag).value == pytest.approx(900.0, rel=0.1)
     truth = problem.refit_params((drift.at(None), lag.at(900.0)), keep_families=True)
     steps = []
     assert exchange(problem, truth, steps) == truth and steps == []
+    # two stand-ins sharing the drift's work are merged into it (a merge needs strong evidence)
+    second, _ = problem.best_value(fams["thermal_lag(probe=t2)"], (stand_in, lag.at(900.0)))
+    steps = []
+    merged = exchange(problem, (stand_in, second, lag.at(900.0)), steps)
+    assert {e.family for e in merged} == {drift, lag}
+    assert any(len(s["exchanged"]) == 2 and s["delta_bic"] > DBIC_MIN for s in steps)

@@ -23,8 +23,8 @@ delta-BIC (which charges every column and every searched parameter) and the best
 re-fitted jointly (coordinate sweeps; probe, pair and form re-chosen within each kind).  When no
 single addition passes or when a pair does clearly better than the best single (BIC), pairs of the
 strongest families are added together.  Stop when nothing passes or after ``MAX_EFFECTS``.  Then an
-exchange pass (``exchange``): each chosen effect in turn is replaced by the family that best fills its
-place when that lowers the BIC; then the backward pass (``prune``).
+exchange pass (``exchange``): a chosen effect (or two, merged) is replaced by the family that best
+fills its place when that lowers the BIC; then the backward pass (``prune``).
 """
 from __future__ import annotations
 
@@ -605,40 +605,49 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
 
 def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
              steps: list[dict[str, Any]]) -> tuple[fx.Effect, ...]:
-    """Exchange pass on TRAIN once the forward selection is done: each chosen effect in turn is taken
-    out, the others' parameters re-fitted without it, and the families that best fill its place (any
-    kind, ``EXCHANGE_CANDIDATES`` of them by training SSR) tried with every continuous parameter
-    re-fitted jointly; the exchange that lowers the BIC most (effective n of the current model), by more
-    than ``SWAP_DBIC`` (a richer form of the effect it replaces: ``DBIC_MIN``), is made, and the pass
-    repeats.  Forward selection commits to its first choices: an early effect bent to stand in for
-    several that were still missing (a lag with a time constant beyond the run standing in for a time
-    drift) keeps the later choices on the wrong probe; the exchange lets the set move off that path one
-    effect at a time."""
+    """Exchange pass on TRAIN once the forward selection is done.  A move takes one chosen effect out, or
+    two (a merge), and puts one in its place: the others' parameters as they stand and re-fitted without
+    what is taken out, the families that best fill the place (any kind, ``EXCHANGE_CANDIDATES`` of them
+    by training SSR) tried with every continuous parameter re-fitted jointly.  The move that lowers the
+    BIC most (effective n of the current model), beyond its margin, is made, and the pass repeats: one for
+    one by more than ``SWAP_DBIC`` (a richer form of the effect it replaces: ``DBIC_MIN``), a merge by
+    more than ``DBIC_MIN`` (it takes out an effect the forward selection added on strong evidence).
+    Forward selection commits to its first choices: an early effect bent to stand in for one still
+    missing (a lag with a time constant beyond the run standing in for a time drift) keeps the later
+    choices on the wrong probe, and two effects may share what one missing effect explains."""
     current = tuple(effects)
     if len(current) < 2:
         return current
     for _ in range(EXCHANGE_ROUNDS):
         n_eff = problem.score(current, with_cv=False).n_eff
         here = problem.bic(current, n_eff)
-        best: tuple[float, float, int, tuple[fx.Effect, ...]] | None = None    # beyond margin, dBIC, slot, set
-        for i, out in enumerate(current):
-            held = problem.refit_params(current[:i] + current[i + 1:], keep_families=True)
-            taken = {e.family for e in held} | {out.family}
-            coarse = sorted((min(problem.ssr(held + (f.at(v),)) for v in (f.grid or (None,))), k)
+        best: tuple[float, tuple[int, ...], tuple[fx.Effect, ...]] | None = None    # dBIC, taken out, new set
+        outs = [(i,) for i in range(len(current))] + list(combinations(range(len(current)), 2))
+        for out in outs:
+            removed = [current[i] for i in out]
+            kept = tuple(e for i, e in enumerate(current) if i not in out)
+            # a parameter bent to share the work of what is taken out, or bent once it is gone, hides the
+            # family that fills the place: both starts are tried
+            starts = (kept, problem.refit_params(kept, keep_families=True)) if kept else ((),)
+            taken = {e.family for e in kept} | ({removed[0].family} if len(out) == 1 else set())
+            coarse = sorted((min(problem.ssr(h + (f.at(v),)) for h in starts for v in (f.grid or (None,))), k)
                             for k, f in enumerate(problem.families) if f not in taken)
+            at = out[0]
             for _s, k in coarse[:EXCHANGE_CANDIDATES]:
                 fam = problem.families[k]
-                cand, _c = problem.best_value(fam, held)
-                trial = problem.refit_params(held[:i] + (cand,) + held[i:], keep_families=True)
-                margin = DBIC_MIN if fam.contains(out.family) else SWAP_DBIC
-                gain = here - problem.bic(trial, n_eff)
-                if gain > margin and (best is None or gain - margin > best[0]):
-                    best = (gain - margin, gain, i, trial)
+                richer = any(fam.contains(r.family) for r in removed)
+                margin = DBIC_MIN if len(out) > 1 or richer else SWAP_DBIC
+                for held in starts:
+                    cand, _c = problem.best_value(fam, held)
+                    trial = problem.refit_params(held[:at] + (cand,) + held[at:], keep_families=True)
+                    gain = here - problem.bic(trial, n_eff)
+                    if gain > margin and (best is None or gain > best[0]):
+                        best = (gain, out, trial)
         if best is None:
             break
-        _beyond, gain, i, trial = best
-        steps.append({"exchanged": current[i].label, "for": trial[i].label, "delta_bic": float(gain),
-                      "after_exchange": [e.label for e in trial]})
+        gain, out, trial = best
+        steps.append({"exchanged": [current[i].label for i in out], "for": trial[out[0]].label,
+                      "delta_bic": float(gain), "after_exchange": [e.label for e in trial]})
         current = trial
     return current
 
