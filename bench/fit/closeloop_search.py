@@ -296,6 +296,11 @@ class SearchProblem:
         profiled = (family.with_delay(best).at(tried[best][1]), tried[best][0])
         return min((here, here_cost), full, profiled, key=lambda r: r[1])
 
+    def grid_ssr(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> float:
+        """The family's lowest training SSR over its scan grid, ``others`` held: how well it could fill a
+        place, before any refinement (the coarse ranking of swaps and exchanges)."""
+        return min(self.ssr(others + (family.at(v),)) for v in (family.grid or (None,)))
+
     def _best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         if not family.param:
             eff = family.at(None)
@@ -371,12 +376,7 @@ class SearchProblem:
             others = current[:i] + current[i + 1:]
             best_bic = self.bic(current, n_eff)
             fams = [f for f in self.families if not any(o.family == f for o in current)]
-            coarse = []
-            for f in fams:
-                vals = f.grid or (None,)
-                costs = [(self.ssr(others + (f.at(v),)), v) for v in vals]
-                coarse.append((min(costs, key=lambda c: c[0])[0], f))
-            coarse.sort(key=lambda c: c[0])
+            coarse = sorted(((self.grid_ssr(f, others), f) for f in fams), key=lambda c: c[0])
             for _, fam in coarse[:3]:
                 cand, _s = self.best_value(fam, others)
                 trial = others[:i] + (cand,) + others[i:]
@@ -628,9 +628,10 @@ def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
             kept = tuple(e for i, e in enumerate(current) if i not in out)
             # a parameter bent to share the work of what is taken out, or bent once it is gone, hides the
             # family that fills the place: both starts are tried
-            starts = (kept, problem.refit_params(kept, keep_families=True)) if kept else ((),)
+            refitted = problem.refit_params(kept, keep_families=True)
+            starts = (kept, refitted) if refitted != kept else (kept,)
             taken = {e.family for e in kept} | ({removed[0].family} if len(out) == 1 else set())
-            coarse = sorted((min(problem.ssr(h + (f.at(v),)) for h in starts for v in (f.grid or (None,))), k)
+            coarse = sorted((min(problem.grid_ssr(f, h) for h in starts), k)
                             for k, f in enumerate(problem.families) if f not in taken)
             at = out[0]
             for _s, k in coarse[:EXCHANGE_CANDIDATES]:
