@@ -51,13 +51,34 @@ PAIR_POOL = 8
 PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
-SWAP_DBIC = 2.0
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
 EXCHANGE_ROUNDS = 4
+SPAN_RTOL = 1e-6              # columns within a span to rounding (``SearchProblem.lies_within``)
 # two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:
 # below 6 the evidence for one over the other is at most "positive", never "strong")
 AMBIGUOUS_DBIC = 6.0
+# below this the training BIC cannot break a tie ("not worth more than a bare mention")
 TIE_DBIC = 2.0
+
+
+def replacement_margin(new: fx.Family, replaced: tuple[fx.Family, ...], restriction: bool = False) -> float:
+    """The training BIC a family must gain to take the place of the ``replaced`` families: another value
+    of the same family, any gain; beyond a tie (``TIE_DBIC``) for another form, probe or kind; strong
+    evidence (``DBIC_MIN``) for a richer form of one of them (``fx.Family.nests``) or one family in place
+    of two (a merge takes out an effect the forward selection added on strong evidence).  When a third
+    family's columns lie within the span of the two it replaces (``restriction``: gradients t1-t3 and
+    t2-t3 hold t1-t2), the two are a richer form of it and keep their place only on strong evidence
+    (the margin is -``DBIC_MIN``); one of the two re-fitted in place of both is a backward step, the
+    backward pass's to judge (``prune``)."""
+    if replaced == (new,):
+        return 0.0
+    if restriction and len(replaced) > 1 and new not in replaced:
+        return -DBIC_MIN
+    if len(replaced) > 1 or any(new.contains(r) for r in replaced):
+        return DBIC_MIN
+    return TIE_DBIC
+
+
 # why blocked cross-validation cannot judge an effect (then the validation run does)
 CV_CONFINED = "the effect lies within one training segment"
 CV_OUT_OF_RANGE = "the effect lies where no training segment can be scored inside the others' range"
@@ -123,6 +144,16 @@ class SearchProblem:
             got = np.column_stack([self._plan.means(v) for v in cols.values()])
             self._cache[key] = got
         return got
+
+    def lies_within(self, eff: fx.Effect, effects: list[fx.Effect] | tuple[fx.Effect, ...]) -> bool:
+        """The effect's columns lie within the span of the declared design's and ``effects``' columns on
+        the evidence blocks (to rounding): a model with it in their place is a restriction of theirs."""
+        X, Z = self.design(tuple(effects)), self.columns(eff)
+        ok = self.rows & np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(Z), axis=1)
+        if not ok.any():
+            return False
+        left = Z[ok] - X[ok] @ np.column_stack([_lstsq(X[ok], z) for z in Z[ok].T])
+        return bool(np.linalg.norm(left) <= SPAN_RTOL * np.linalg.norm(Z[ok]))
 
     def design(self, effects: tuple[fx.Effect, ...]) -> np.ndarray:
         if not effects:
@@ -348,10 +379,9 @@ class SearchProblem:
                     cand, _s = self.best_value(fam, others, refine_delay=refine_delay and fam == eff.family)
                     trial = others[:i] + (cand,) + others[i:]
                     b = self.bic(trial, n_eff)
-                    # BIC: another form or probe pays for its columns, and moves the choice only beyond a
-                    # tie (a richer form of the effect in place: on strong evidence, ``Family.nests``)
-                    margin = 1e-9 if fam == eff.family else DBIC_MIN if fam.contains(eff.family) else TIE_DBIC
-                    if b < best - margin:
+                    # BIC: another form or probe pays for its columns, and moves the choice only beyond
+                    # its margin
+                    if b < best - max(replacement_margin(fam, (eff.family,)), 1e-9):
                         current, best, eff, changed = trial, b, cand, True
             if not changed:
                 break
@@ -364,10 +394,9 @@ class SearchProblem:
 
     def swap(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
         """Replace an added effect by another family (any kind) when that lowers the BIC (effective n
-        of the current model) by more than SWAP_DBIC (a richer form of the effect in place,
-        ``fx.Family.nests``: by more than DBIC_MIN): an early choice made while another effect was still
-        missing is revisited once that effect is in.  A lone effect is left as chosen: it was ranked
-        against every family at its step."""
+        of the current model) by more than ``replacement_margin``: an early choice made while another
+        effect was still missing is revisited once that effect is in.  A lone effect is left as chosen:
+        it was ranked against every family at its step."""
         current = tuple(effects)
         if len(current) < 2:
             return current
@@ -381,8 +410,7 @@ class SearchProblem:
                 cand, _s = self.best_value(fam, others)
                 trial = others[:i] + (cand,) + others[i:]
                 b = self.bic(trial, n_eff)
-                margin = DBIC_MIN if cand.family.contains(current[i].family) else SWAP_DBIC
-                if b < best_bic - margin:
+                if b < best_bic - replacement_margin(cand.family, (current[i].family,)):
                     current, best_bic = trial, b
         return current
 
@@ -609,9 +637,8 @@ def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
     two (a merge), and puts one in its place: the others' parameters as they stand and re-fitted without
     what is taken out, the families that best fill the place (any kind, ``EXCHANGE_CANDIDATES`` of them
     by training SSR) tried with every continuous parameter re-fitted jointly.  The move that lowers the
-    BIC most (effective n of the current model), beyond its margin, is made, and the pass repeats: one for
-    one by more than ``SWAP_DBIC`` (a richer form of the effect it replaces: ``DBIC_MIN``), a merge by
-    more than ``DBIC_MIN`` (it takes out an effect the forward selection added on strong evidence).
+    BIC most (effective n of the current model), beyond its ``replacement_margin``, is made, and the pass
+    repeats.
     Forward selection commits to its first choices: an early effect bent to stand in for one still
     missing (a lag with a time constant beyond the run standing in for a time drift) keeps the later
     choices on the wrong probe, and two effects may share what one missing effect explains."""
@@ -636,10 +663,10 @@ def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
             at = out[0]
             for _s, k in coarse[:EXCHANGE_CANDIDATES]:
                 fam = problem.families[k]
-                richer = any(fam.contains(r.family) for r in removed)
-                margin = DBIC_MIN if len(out) > 1 or richer else SWAP_DBIC
                 for held in starts:
                     cand, _c = problem.best_value(fam, held)
+                    margin = replacement_margin(fam, tuple(r.family for r in removed),
+                                                restriction=len(removed) > 1 and problem.lies_within(cand, removed))
                     trial = problem.refit_params(held[:at] + (cand,) + held[at:], keep_families=True)
                     gain = here - problem.bic(trial, n_eff)
                     if gain > margin and (best is None or gain > best[0]):
