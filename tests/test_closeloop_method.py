@@ -412,3 +412,32 @@ def test_two_gradients_that_only_hold_a_third_between_them_are_merged_into_it(ne
         return
     assert moved == (g12.at(None),)
     assert steps[0]["exchanged"] == [e.label for e in pair] and 0 < steps[0]["delta_bic"] < DBIC_MIN
+
+
+@pytest.mark.parametrize("inflated", [True, False])
+def test_the_search_goes_on_at_a_floor_that_the_next_addition_lowers(inflated):
+    # the stop floor is read from the residual it judges: a slow structure still in it reads as flicker
+    # and lifts it.  At that floor the search goes on only when the addition it would make lowers the
+    # floor beyond the verdict's tolerance; a floor that stays where it is stops it
+    from bench.fit.closeloop_search import AT_FLOOR_RATIO, search
+
+    rng = np.random.default_rng(5)
+    t = np.arange(5.0, 40_000.0, FINE_S)
+    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
+    fine = _inputs(t, temp)
+    lagged = fx.first_order_lag(temp, t, 900.0) - temp
+    lag = fx.Family("thermal_lag", (("probe", "t1"),), lambda x, _v: {"lag900(t1)-t1": lagged})
+    drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
+    y = 0.2 * lagged + 0.02 * (t - t[0]) / 3600.0 + rng.normal(0, 0.02, len(t))
+    problem = _problem(fine, y, [lag, drift])
+    high = 10.0          # deg/h: every residual here is "at" it
+    # with the lag only, the floor read from the residual is high; with the drift in too, the noise's
+    stop_at = (lambda effs: high if len(effs) < 2 else 0.01) if inflated else (lambda effs: high)
+    chosen, steps = search(problem, stop_at=stop_at)
+    assert steps[0]["added"] and not steps[0].get("floor_inflated")
+    if inflated:
+        assert sorted(e.kind for e in chosen) == ["thermal_lag", "time_drift"]
+        assert steps[1]["floor_inflated"]["stop_std100_dph"] == high
+        assert steps[1]["floor_inflated"]["stop_std100_with_it_dph"] * AT_FLOOR_RATIO < high
+    else:
+        assert len(chosen) == 1 and "stopped" in steps[1]

@@ -41,7 +41,7 @@ import numpy as np
 
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
-from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
+from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, AT_FLOOR_RATIO, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, search)
 from bench.fit.metrics import bias_stability, window_means, window_numbers
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
@@ -52,7 +52,6 @@ from bench.signal.lstsq import blas_threads
 
 __all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
 
-AT_FLOOR_RATIO = 1.2
 STOP_RATIO = 1.15
 # added effects must remove at least this share of the validation residual's variance above the floor
 MIN_EXCESS_SHARE = 0.5

@@ -59,6 +59,10 @@ SPAN_RTOL = 1e-6              # columns within a span to rounding (``SearchProbl
 AMBIGUOUS_DBIC = 6.0
 # below this the training BIC cannot break a tie ("not worth more than a bare mention")
 TIE_DBIC = 2.0
+# the verdict's tolerance: a std of 100-s means within this factor of the noise floor is at the floor.
+# The search's stop floor this much above the floor once the best passing addition is in had read
+# structure as noise
+AT_FLOOR_RATIO = 1.2
 
 
 def replacement_margin(new: fx.Family, replaced: tuple[fx.Family, ...], restriction: bool = False) -> float:
@@ -539,7 +543,9 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     whitest candidate model of the step), so that a candidate does not win by whitening its own
     residual; each must pass the gates with its own effective n.  Pairs of the strongest families are
     fitted jointly at every step; a pair is taken instead of the best single when its BIC is lower by
-    more than ``PAIR_DBIC`` (two effects at once that no single one explains well)."""
+    more than ``PAIR_DBIC`` (two effects at once that no single one explains well).  The search stops
+    at the training noise floor (``stop_std100``, then ``stop_at`` of the effects chosen), unless the
+    single addition the step would make lowers that floor by more than ``AT_FLOOR_RATIO``."""
     chosen: tuple[fx.Effect, ...] = ()
     steps: list[dict[str, Any]] = []
     while len(chosen) < MAX_EFFECTS:
@@ -547,9 +553,9 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         left = float(np.nanstd(base.resid, ddof=1))
         if chosen and stop_at is not None:
             stop_std100 = stop_at(chosen)
-        if stop_std100 is not None and left <= stop_std100:
-            steps.append({"stopped": f"training residual std100 {left:.4g} is at the noise floor "
-                                     f"(<= {stop_std100:.4g})"})
+        at_floor = stop_std100 is not None and left <= stop_std100
+        if at_floor and not (chosen and stop_at is not None):
+            steps.append(_stopped(left, stop_std100))
             break
         used = {e.family for e in chosen}
         singles = []
@@ -565,7 +571,7 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
             new = problem.score(chosen + (eff,))
             ranked.append(((eff,), new, gates(problem, base, new, (eff,))))
         pairs = []
-        if len(chosen) + 2 <= MAX_EFFECTS:
+        if not at_floor and len(chosen) + 2 <= MAX_EFFECTS:
             pool, kinds = [], set()
             for _, eff in singles:              # the strongest family of each kind
                 if eff.kind not in kinds and len(pool) < PAIR_POOL:
@@ -605,6 +611,12 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
                                                and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
                                                and not _at_floor(pick, chosen, stop_at))):
             pick = passing_pairs[0]
+        if at_floor and (pick is None or not stop_at(chosen + pick[0]) * AT_FLOOR_RATIO < stop_std100):
+            # the floor the residual is judged against is read from that residual, and slow structure
+            # still in it reads as flicker noise and lifts it: the search goes on at the floor only when
+            # the addition it would make lowers that floor beyond the verdict's tolerance
+            steps.append(_stopped(left, stop_std100))
+            break
         if pick is None:
             break
         move, new, ev = pick
@@ -619,7 +631,10 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         chosen = problem.refit_jointly(chosen + move)
         steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
                       "evidence": ev, "train_std100_before_step": left,
-                      "after_joint_refit": [e.label for e in chosen]})
+                      "after_joint_refit": [e.label for e in chosen],
+                      **({"floor_inflated": {"stop_std100_dph": stop_std100,
+                                             "stop_std100_with_it_dph": stop_at(chosen)}}
+                         if at_floor else {})})
     chosen = exchange(problem, chosen, steps)
     chosen = prune(problem, chosen, steps)
     chosen = centre_stepwise(problem, drop_drift_that_is_a_step(problem, chosen, steps))
@@ -826,6 +841,10 @@ def drop_drift_that_is_a_step(problem: SearchProblem, effects: tuple[fx.Effect, 
                                                "bic_margin_over_drift": float(b_drift - b_step)}})
         return others
     return effects
+
+
+def _stopped(left: float, stop_std100: float) -> dict[str, str]:
+    return {"stopped": f"training residual std100 {left:.4g} is at the noise floor (<= {stop_std100:.4g})"}
 
 
 def _at_floor(single, chosen, stop_at) -> bool:
