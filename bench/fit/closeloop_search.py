@@ -551,10 +551,12 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     while len(chosen) < MAX_EFFECTS:
         base = problem.score(chosen)
         left = float(np.nanstd(base.resid, ddof=1))
-        if chosen and stop_at is not None:
+        # once effects are in, the floor is read from the residual it judges (``stop_at``)
+        floor_from_residual = bool(chosen) and stop_at is not None
+        if floor_from_residual:
             stop_std100 = stop_at(chosen)
         at_floor = stop_std100 is not None and left <= stop_std100
-        if at_floor and not (chosen and stop_at is not None):
+        if at_floor and not floor_from_residual:
             steps.append(_stopped(left, stop_std100))
             break
         used = {e.family for e in chosen}
