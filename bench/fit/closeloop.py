@@ -61,6 +61,7 @@ MAX_SCALE_CHANGE = 1.25
 # one-sided 1 % level of the validation skill test (an added effect's prediction found in the validation run)
 Z_SKILL = 2.326
 MIN_DIAGNOSIS_BLOCKS = 12
+MIN_MEASURED_SHARE = 0.5      # an evidence block counts when its target was measured over this share of it
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
 TEST_P = LIMIT_P              # one significance level: structure tests and the noise-floor limit
@@ -174,8 +175,15 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     cols.update({f"x{j}": np.where(measured, design.train[:, j], np.nan) for j in range(design.train.shape[1])})
     sig = design.train_signals if design.train_signals is not None else np.zeros((len(train), 0))
     cols.update({f"s{j}": np.where(measured, sig[:, j], np.nan) for j in range(sig.shape[1])})
+    cols["measured"] = measured.astype(np.float64)
     on_fine = block_means(t_tr, cols, FINE_S).columns if sample_period(t_tr) < 0.9 * FINE_S else cols
     ev = evidence_blocks(fine.time, on_fine)
+    # a block whose target was measured over less than half its samples (the gyro switched on a few
+    # seconds before its end) has a mean many times noisier than the others, and least squares on block
+    # means weighs every block alike: an effect that fits such a block (a warm-up of a few seconds, a
+    # short-window rate at the power-on edge) gains evidence from noise.  It is left out of the evidence
+    ev["y"] = np.where(ev.pop("measured") >= MIN_MEASURED_SHARE, ev["y"], np.nan)
+    on_fine.pop("measured")
     k, ns = design.train.shape[1], sig.shape[1]
     problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[f"x{j}"] for j in range(k)]), fine=fine,
                             declared_signals_b=np.column_stack([ev[f"s{j}"] for j in range(ns)]) if ns
