@@ -57,6 +57,20 @@ def test_each_hidden_kind_is_named_and_fixed(kind):
     assert set(added) >= {"kind", "params", "terms", "coefficients", "evidence", "validation_std100_dph"}
 
 
+def test_a_temp_rate_cross_about_a_temperature_of_its_own_is_one_effect():
+    # 0.004 (T - 18 C) dT/dt: the unit's rate sensitivity vanishes at 18 C, not at the library's 25 C.
+    # It is one effect (the cross term and the rate it carries), not a cross term plus a rate, and not
+    # the declared cubic at a lagged temperature (which holds T dT/dt and T^2 dT/dt both)
+    hidden = {"temp_rate_cross": 0.004, "rate": 0.004 * (25.0 - 18.0)}
+    train, validate, extra_tr, extra_va = _runs(hidden, {})
+    ch = public(close_loop(train, validate, "static", channels=["x"], bin_c=None))["channels"]["x"]
+    assert [e["kind"] for e in ch["effects_added"]] == ["temp_rate_cross"], ch["findings"]
+    assert ch["effects_added"][0]["params"]["probe"] == "t1"
+    assert ch["verdict"] == "explained", ch["findings"]
+    target = _true_model_std100(train, validate, extra_tr, extra_va)
+    assert ch["after"]["validation_std100_dph"] <= 1.2 * target, (ch["after"], target)
+
+
 def test_thermal_lag_time_constant_is_recovered():
     hidden, kw = CASES["thermal_lag"]
     train, validate, _, _ = _runs(hidden, kw)

@@ -250,42 +250,85 @@ def test_structure_the_model_misses_on_the_validation_run_does_not_raise_its_noi
     assert loud["verdict"] == "unexplained_structure_remains"
 
 
-def test_a_richer_form_of_an_effect_is_taken_over_its_simpler_form_only_on_strong_evidence():
-    # the declared cubic evaluated at the own probe's lag (the polynomial form) holds the linear lag
-    # (lag - T) of that probe; a training run that prefers it by less than DBIC_MIN keeps the linear one
-    from bench.fit.closeloop_search import DBIC_MIN, TIE_DBIC, search
+def _chosen_between(simple: fx.Family, rich: fx.Family, fine: fx.Inputs, y: np.ndarray) -> tuple[float, str]:
+    """The training BIC margin of ``rich`` over ``simple`` (each at its best value) and the form the
+    search takes, on a declared cubic in the probe."""
+    from bench.fit.closeloop_search import search
 
+    t, u = fine.time, fine.temps["t1"] - 25.0
+    ev = evidence_blocks(t, {"y": y, "one": np.ones_like(t), "u1": u, "u2": u ** 2, "u3": u ** 3})
+    problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[k] for k in ("one", "u1", "u2", "u3")]),
+                            fine=fine, declared_signals_b=np.zeros((len(ev["y"]), 0)), families=[simple, rich],
+                            fine_valid=np.isfinite(y))
+    a, _ = problem.best_value(simple, ())
+    b, _ = problem.best_value(rich, ())
+    n_eff = problem.score((a,), with_cv=False).n_eff
+    chosen, _steps = search(problem)
+    assert len(chosen) == 1
+    picked = chosen[0].family
+    return problem.bic((a,), n_eff) - problem.bic((b,), n_eff), "rich" if picked == rich else "simple"
+
+
+def _program() -> fx.Inputs:
     t = np.arange(5.0, 60_000.0, FINE_S)
     temp = np.interp(t, [0, 4000, 10000, 16000, 22000, 30000, 36000, 44000, 52000, 60000],
                      [20, 50, 50, 0, 0, 40, -10, -10, 30, 30])
-    fine = _inputs(t, temp)
+    return _inputs(t, temp)
+
+
+def test_the_declared_model_at_a_lagged_temperature_is_taken_over_the_linear_lag_only_on_strong_evidence():
+    # f(lag T) - f(T), f the declared cubic's part in T as TRAIN fits it, is a more particular form of the
+    # linear lag (lag - T) of the own probe: a training run that prefers it by less than DBIC_MIN keeps
+    # the linear one
+    from bench.fit.closeloop_search import DBIC_MIN, TIE_DBIC
+
+    fine = _program()
+    t, temp = fine.time, fine.temps["t1"]
     ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
-    lags = [f for f in fx.families(ctx, fine) if f.kind == "thermal_lag"]
-    linear = next(f for f in lags if f.fixed == (("probe", "t1"),))
-    poly = next(f for f in lags if dict(f.fixed).get("form") == "polynomial")
-    assert poly.contains(linear) and not linear.contains(poly)
+    assert not any(dict(f.fixed).get("form") == "polynomial"
+                   for f in fx.families(replace(ctx, own_shape=(0.02,)), fine))   # a linear f: the linear lag
     lag = fx.first_order_lag(temp, t, 1500.0)
-    u = temp - 25.0
 
-    def chosen_form(cubic: float) -> tuple[float, str]:
-        y = 0.02 * (lag - temp) + cubic * (lag - 25.0) ** 3 + np.random.default_rng(3).normal(0, 0.05, len(t))
-        ev = evidence_blocks(t, {"y": y, "one": np.ones_like(t), "u1": u, "u2": u ** 2, "u3": u ** 3})
-        problem = SearchProblem(yb=ev["y"], Xb=np.column_stack([ev[k] for k in ("one", "u1", "u2", "u3")]),
-                                fine=fine, declared_signals_b=np.zeros((len(ev["y"]), 0)), families=lags,
-                                fine_valid=np.isfinite(y))
-        lin, _ = problem.best_value(linear, ())
-        pol, _ = problem.best_value(poly, ())
-        n_eff = problem.score((lin,), with_cv=False).n_eff
-        chosen, _steps = search(problem)
-        assert len(chosen) == 1
-        return problem.bic((lin,), n_eff) - problem.bic((pol,), n_eff), dict(chosen[0].family.fixed).get("form", "linear")
+    def chosen(cubic: float) -> tuple[float, str]:
+        # the unit's f: 0.02 (T - 25) + cubic (T - 25)^3, and its element 1500 s behind the probe
+        lags = [f for f in fx.families(replace(ctx, own_shape=(0.02, 0.0, cubic)), fine) if f.kind == "thermal_lag"]
+        linear = next(f for f in lags if f.fixed == (("probe", "t1"),))
+        shape = next(f for f in lags if dict(f.fixed).get("form") == "polynomial")
+        assert shape.contains(linear) and not linear.contains(shape)
+        y = 0.02 * (lag - temp) + cubic * ((lag - 25.0) ** 3 - (temp - 25.0) ** 3)
+        return _chosen_between(linear, shape, fine, y + np.random.default_rng(3).normal(0, 0.05, len(t)))
 
-    margin, form = chosen_form(8e-7)         # a trace of curvature: the richer form fits better, not by much
+    margin, form = chosen(5e-7)         # a trace of curvature: the particular form fits better, not by much
     assert TIE_DBIC < margin < DBIC_MIN
-    assert form == "linear"
-    margin, form = chosen_form(2e-6)
+    assert form == "simple"
+    margin, form = chosen(2e-6)
     assert margin > DBIC_MIN
-    assert form == "polynomial"
+    assert form == "rich"
+
+
+def test_a_cross_term_about_a_temperature_of_its_own_is_taken_over_the_rate_only_on_strong_evidence():
+    # (T - T0) dT/dt with the unit's T0 unknown holds the rate dT/dt of that probe: a training run that
+    # prefers it by less than DBIC_MIN keeps the rate
+    from bench.fit.closeloop_search import DBIC_MIN, TIE_DBIC
+
+    fine = _program()
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    fams = fx.families(ctx, fine)
+    rate = next(f for f in fams if f.kind == "rate")
+    cross = next(f for f in fams if f.kind == "temp_rate_cross")
+    assert cross.contains(rate) and not rate.contains(cross)
+    r = fx.rate_c_per_min(fine.temps["t1"], fine.time, 120.0)
+    u = fine.temps["t1"] - 25.0
+
+    def y(c: float) -> np.ndarray:
+        return 0.05 * r + c * u * r + np.random.default_rng(3).normal(0, 0.05, len(r))
+
+    margin, form = _chosen_between(rate, cross, fine, y(4e-4))
+    assert TIE_DBIC < margin < DBIC_MIN
+    assert form == "simple"
+    margin, form = _chosen_between(rate, cross, fine, y(1e-3))
+    assert margin > DBIC_MIN
+    assert form == "rich"
 
 
 def test_a_rate_window_the_training_run_does_not_determine_is_the_declared_models_own():
@@ -461,3 +504,22 @@ def test_a_block_the_gyro_was_measured_over_for_a_few_seconds_is_no_evidence():
     assert r["effects_added"] == [] and r["effects_not_generalised"] == []
     assert r["verdict"] == "no_effect_missing"
 
+
+
+def test_the_declared_models_part_in_the_own_probe_is_read_from_its_terms_and_its_training_fit():
+    # tc and tc^3 are functions of the own probe alone; dtc and (tc - t4) are not.  The part's shape is
+    # the polynomial in (T - 25) through what TRAIN fitted, of its true degree (3, from two terms)
+    from bench.fit.closeloop import _declared_design, own_shape
+
+    train, _ = make_run(TRAIN_PROFILE, {}, seed=1)
+    validate, _ = make_run(VALIDATE_PROFILE, {}, seed=2)
+    _, design, y_tr, _, probe, _ = _declared_design("tc + tc^3 + dtc + (tc-t4)", train, validate, "x", None, {})
+    assert [design.names[i] for i in design.own_columns] == ["tc", "tc^3"]
+    temp = np.asarray(train[f"temp_{probe}"], dtype=float)
+    shape = own_shape(design, y_tr, temp)
+    assert len(shape) == 3
+    beta = np.linalg.lstsq(design.train[np.isfinite(y_tr)], y_tr[np.isfinite(y_tr)], rcond=None)[0]
+    part = design.train[:, list(design.own_columns)] @ beta[list(design.own_columns)]
+    u = temp - 25.0
+    again = sum(c * u ** j for j, c in enumerate(shape, 1))
+    np.testing.assert_allclose(again - again.mean(), part - part.mean(), atol=1e-9 * np.ptp(part))

@@ -32,7 +32,6 @@ Which decision uses which run:
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from itertools import product
 from typing import Any
@@ -61,6 +60,7 @@ MAX_SCALE_CHANGE = 1.25
 # one-sided 1 % level of the validation skill test (an added effect's prediction found in the validation run)
 Z_SKILL = 2.326
 MIN_DIAGNOSIS_BLOCKS = 12
+MAX_SHAPE_DEGREE = 6          # the declared model's part in the own probe is a polynomial of at most this degree
 MIN_MEASURED_SHARE = 0.5      # an evidence block counts when its target was measured over this share of it
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
 MIN_VALIDATE_S = 1200.0       # 12 blocks of 100 s: the least the structure tests can judge
@@ -95,6 +95,7 @@ class Design:
     in_range: np.ndarray | None = None            # validation samples with every input in range
     outside: dict[str, Any] = field(default_factory=dict)
     train_signals: np.ndarray | None = None       # the declared inputs on TRAIN (n_train, s)
+    own_columns: tuple[int, ...] = ()             # columns that are functions of the own probe alone
 
 
 # --------------------------------------------------------------------------------------------
@@ -632,10 +633,43 @@ def _findings(r: dict[str, Any]) -> str:
 # --------------------------------------------------------------------------------------------
 # entry point
 
-def _poly_order(terms: list[str], probe: str) -> int:
-    pat = re.compile(r"^\(?" + re.escape(probe) + r"(-[-+\d.]+)?\)?(\^(\d+))?$")
-    orders = [int(m.group(3) or 1) for t in terms if (m := pat.match(t.replace(" ", "")))]
-    return max(orders) if orders else 1
+def _own_columns(terms: list[dict[str, Any]], column: str) -> tuple[int, ...]:
+    """Indices of the declared terms that are functions of ``column`` alone (powers of the own probe's
+    temperature, centred or not)."""
+    def leaves(tree: dict[str, Any]):
+        args = tree.get("args")
+        if args:
+            for a in args:
+                yield from leaves(a)
+        else:
+            yield tree
+
+    out = []
+    for i, term in enumerate(terms):
+        found = list(leaves(term.get("tree") or {}))
+        temps = [x for x in found if x.get("op") == "temp"]
+        if temps and all(x.get("op") == "const" or (x.get("op") == "temp" and x.get("column") == column)
+                          for x in found):
+            out.append(i)
+    return tuple(out)
+
+
+def own_shape(design: Design, y_train: np.ndarray, temp_train: np.ndarray) -> tuple[float, ...]:
+    """The declared model's part in the own probe alone, as TRAIN fits it, as coefficients of
+    (T - 25)^j, j = 1..n: the polynomial of least degree (up to ``MAX_SHAPE_DEGREE``) through its
+    fitted values; empty when there is none."""
+    own = list(design.own_columns)
+    if not own:
+        return ()
+    beta = lstsq(design.train, y_train)
+    ok = np.isfinite(temp_train) & np.all(np.isfinite(design.train[:, own]), axis=1)
+    u = temp_train[ok] - fx.T0_C
+    f = design.train[ok][:, own] @ beta[own]
+    for degree in range(1, min(MAX_SHAPE_DEGREE, len(np.unique(u)) - 1) + 1):
+        coef = np.polynomial.polynomial.polyfit(u, f, degree)
+        if np.max(np.abs(np.polynomial.polynomial.polyval(u, coef) - f)) <= 1e-9 * (np.max(np.abs(f)) + 1e-30):
+            return tuple(float(c) for c in coef[1:])
+    return ()
 
 
 def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str,
@@ -669,9 +703,10 @@ def _declared_design(model: str, train: Dataset, validate: Dataset, channel: str
     usable = np.isfinite(y_va) & np.all(np.isfinite(x_va), axis=1)
     keys = [k for k in ranges if k in s_tr]
     sig_tr = np.column_stack([s_tr[k] for k in keys]) if keys else np.zeros((len(train), 0))
-    design = Design(list(compiled.names), x_tr, x_va, validate_deployed=x_dep, in_range=in_range,
-                    outside=outside_summary(s_va, ranges, usable), train_signals=sig_tr)
     probe = d.get("probe") or _first_probe(compiled, train)
+    design = Design(list(compiled.names), x_tr, x_va, validate_deployed=x_dep, in_range=in_range,
+                    outside=outside_summary(s_va, ranges, usable), train_signals=sig_tr,
+                    own_columns=_own_columns(d["terms"], f"temp_{probe}") if len(d["terms"]) == x_tr.shape[1] else ())
     return declared, design, y_tr, y_va, probe, window
 
 
@@ -718,10 +753,10 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                 raise ValueError(f"channel {ch!r}: column gyro_{ch} missing from the "
                                  f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
             declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
-            terms = [t["expr"] for t in declared.definition["terms"]]
             ctx = fx.Context(channel=ch, primary_probe=probe, probes=tuple(train.temp_names()),
                              channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
-                             poly_order=_poly_order(terms, probe))
+                             own_shape=own_shape(design, y_tr, np.asarray(train[f"temp_{probe}"], dtype=float))
+                             if f"temp_{probe}" in train else ())
             report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
     return report
 

@@ -7,15 +7,18 @@ and the signature each one explains (calibration-notes section 3), each on EVERY
 
 ``thermal_lag(probe, tau)``     the sensing element follows ``probe`` through a first-order lag tau:
                                 the one column lag_tau(T_probe) - T_probe; and, on the declared
-                                model's own probe, through the declared polynomial's shape
-                                (form "polynomial"): columns (lag_tau(T) - 25)^j, j = 1..order (the
-                                declared powers stay in the design, so the span holds f(lag T) - f(T))
+                                model's own probe, through the declared model's shape (form
+                                "polynomial"): the one column f(lag_tau(T)) - f(T), f the declared
+                                model's part in T as the training run fits it (``Context.own_shape``;
+                                a more particular form of the linear lag, taken over it only on
+                                strong evidence)
 The declared model's own probe is the default: a family on another probe (or a pair) pays one more
 searched parameter in the BIC.
 ``gradient(a-b)``               a temperature difference between two probes
 ``rate(probe, window)``         dT/dt of a probe (C/min), the derivative filter's window searched
 ``rate_squared(probe)``         (dT/dt)^2
-``temp_rate_cross(probe)``      (T - 25) dT/dt
+``temp_rate_cross(probe)``      (T - T0) dT/dt, T0 the unit's own: the columns (T - 25) dT/dt and dT/dt
+                                (a richer form of the rate, taken over it only on strong evidence)
 ``hysteresis(probe, relay)``    heating vs cooling: a relay state +1 after heating faster than a
                                 threshold (C/min), -1 after cooling faster, held in between
 ``hysteresis(probe, reversal)`` a relay on the temperature path (a Schmitt trigger): +1 once the
@@ -80,7 +83,9 @@ class Context:
     channels: tuple[str, ...]         # all gyro channels in the data
     latitude_deg: float | None
     rate_window_s: float = 300.0
-    poly_order: int = 3               # powers of the primary probe in the declared model
+    # the declared model's part in the primary probe alone, fitted on TRAIN: its coefficients of
+    # (T - 25)^j, j = 1.. (empty: not known)
+    own_shape: tuple[float, ...] = ()
 
 
 @dataclass
@@ -214,13 +219,13 @@ class Family:
     # the columns change only where the parameter crosses a value the data reach (a relay's threshold,
     # a trigger's width): the training run pins it to an interval, not to a point
     stepwise: bool = False
-    # the family of the same kind whose columns, with the declared model's, lie within this one's (its
-    # ``fixed``): a richer form of that effect, taken only on strong evidence over it
-    nests: tuple[tuple[str, str], ...] | None = None
+    # the family whose columns, with the declared model's, lie within this one's (its kind and
+    # ``fixed``): this one is a richer form of it, taken only on strong evidence over it
+    nests: tuple[str, tuple[tuple[str, str], ...]] | None = None
 
     def contains(self, other: "Family") -> bool:
         """This family is a richer form of ``other`` (``nests``)."""
-        return self.nests is not None and other.kind == self.kind and other.fixed == self.nests
+        return self.nests is not None and (other.kind, other.fixed) == self.nests
 
     @property
     def bounds(self) -> tuple[float, float]:
@@ -634,7 +639,6 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     """Every effect family applicable to these inputs."""
     out: list[Family] = []
     probes = [p for p in ctx.probes if p in inputs.temps]
-    order = max(1, ctx.poly_order)
 
     own = ctx.primary_probe
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
@@ -658,15 +662,20 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             out.append(Family("thermal_lag", (("probe", p), ("form", "absolute")), lag_absolute, "tau_s",
                               tuple(t for t in lag_taus if t >= ABSOLUTE_LAG_MIN_S) or (ABSOLUTE_LAG_MIN_S,),
                               limits=abs_limits))
-    if own in probes and order > 1:
-        def lag_shape(x: Inputs, tau, p=own):
-            # the declared polynomial evaluated at the lagged probe (its own powers stay in the design)
-            v = first_order_lag(x.temps[p], x.time, tau) - T0_C
-            return {f"(lag{tau:.0f}({p})-25)^{j}" if j > 1 else f"(lag{tau:.0f}({p})-25)": v ** j
-                    for j in range(1, order + 1)}
-        # it holds the linear lag of the own probe (lag - T: its first power and the declared T)
+    shape = tuple(float(c) for c in ctx.own_shape)
+    if own in probes and any(c != 0.0 for c in shape[1:]):
+        def lag_shape(x: Inputs, tau, p=own, c=shape):
+            # the element follows the probe through a lag and the declared model holds at the element's
+            # temperature: f(lag T) - f(T), f the declared model's part in T as TRAIN fitted it (one
+            # column, its size searched: the same freedom as the linear lag, which it is for a linear f)
+            def column(s: Inputs) -> np.ndarray:
+                u = s.temps[p] - T0_C
+                v = first_order_lag(s.temps[p], s.time, tau) - T0_C
+                return sum(cj * (v ** j - u ** j) for j, cj in enumerate(c, 1))
+            return {f"f(lag{tau:.0f}({p}))-f({p})": x.own_rate(("lag shape", p, round(float(tau), 3)), column)}
+        # a more particular form of the linear lag of the own probe, taken over it only on strong evidence
         out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", lag_taus,
-                          chosen_probe=False, limits=lag_limits, nests=(("probe", own),)))
+                          chosen_probe=False, limits=lag_limits, nests=("thermal_lag", (("probe", own),))))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
@@ -680,10 +689,12 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                           lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.own_rate(
                               ("rate^2", p, round(float(w), 3)), lambda s: s.rate(p, w) ** 2)},
                           RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
+        # (T - T0) dT/dt with the unit's T0 unknown: (T - 25) dT/dt and dT/dt, both sized
         out.append(Family("temp_rate_cross", (("probe", p),),
                           lambda x, w, p=p: {f"({p}-25)*d{p}[{w:.0f}s]": x.own_rate(
-                              ("temp*rate", p, round(float(w), 3)), lambda s: (s.temps[p] - T0_C) * s.rate(p, w))},
-                          RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
+                              ("temp*rate", p, round(float(w), 3)), lambda s: (s.temps[p] - T0_C) * s.rate(p, w)),
+                              f"d{p}[{w:.0f}s]": x.rate(p, w)},
+                          RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine, nests=("rate", (("probe", p),))))
         # the relay switches on the rate as the element sees it: its smoothing (the rate filter's
         # window) is the element's own, unknown, so each window is a variant of the relay
         for w in RELAY_WINDOWS_S:
