@@ -219,8 +219,9 @@ class Family:
     # the columns change only where the parameter crosses a value the data reach (a relay's threshold,
     # a trigger's width): the training run pins it to an interval, not to a point
     stepwise: bool = False
-    # the family whose columns, with the declared model's, lie within this one's (its kind and
-    # ``fixed``): this one is a richer form of it, taken only on strong evidence over it
+    # the simpler form of this effect (its kind and ``fixed``): its columns, with the declared model's,
+    # lie within this one's (the cross term holds the rate), or this one is a particular case of it
+    # (the lag through the declared model's shape); this one is taken over it only on strong evidence
     nests: tuple[str, tuple[tuple[str, str], ...]] | None = None
 
     def contains(self, other: "Family") -> bool:
