@@ -636,20 +636,12 @@ def _findings(r: dict[str, Any]) -> str:
 def _own_columns(terms: list[dict[str, Any]], column: str) -> tuple[int, ...]:
     """Indices of the declared terms that are functions of ``column`` alone (powers of the own probe's
     temperature, centred or not)."""
-    def leaves(tree: dict[str, Any]):
-        args = tree.get("args")
-        if args:
-            for a in args:
-                yield from leaves(a)
-        else:
-            yield tree
+    from bench.fit.formula import leaves
 
     out = []
     for i, term in enumerate(terms):
-        found = list(leaves(term.get("tree") or {}))
-        temps = [x for x in found if x.get("op") == "temp"]
-        if temps and all(x.get("op") == "const" or (x.get("op") == "temp" and x.get("column") == column)
-                          for x in found):
+        found = leaves(term["tree"])       # its signals (constants are not among them)
+        if found and all(x["op"] == "temp" and x.get("column") == column for x in found):
             out.append(i)
     return tuple(out)
 
