@@ -96,6 +96,24 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     assert absolute[0].bounds[0] == fx.ABSOLUTE_LAG_MIN_S and min(absolute[0].grid) >= fx.ABSOLUTE_LAG_MIN_S
 
 
+def test_a_memorys_width_stays_within_its_meaningful_range_when_its_delay_is_profiled():
+    # the data want a memory wider than the family allows (a wider one never saturates on this run): the
+    # joint re-fit, which profiles the delay with the width re-fitted at each delay, must not leave the
+    # range either (it once returned 30.7 C for a family limited to 27 C)
+    t = np.arange(5.0, 40000.0, FINE_S)
+    temp = np.interp(t, [0, 5000, 12000, 20000, 27000, 40000], [20, 50, 50, 0, 0, 30])
+    fine = _inputs(t, temp)
+    family = fx.Family("hysteresis", (("probe", "t1"), ("form", "gradual")),
+                       lambda x, w, delay=0.0: {"m": fx.duhem_memory(x.path("t1", delay), w)}, "width_c",
+                       (1.0, 2.0, 4.0, 8.0), limits=(0.5, 8.0), delayed=True)
+    y = 0.5 * fx.duhem_memory(fine.path("t1", 60.0), 14.0)
+    problem = _problem(fine, y, [family])
+    plain, _ = problem.best_value(family, ())
+    profiled, _ = problem.best_value(family, (), refine_delay=True)
+    assert plain.value <= 8.0 and plain.value == pytest.approx(8.0, rel=0.05)
+    assert profiled.value <= 8.0 + 1e-9
+
+
 def test_a_relay_threshold_the_training_run_pins_only_to_an_interval_is_taken_at_its_middle():
     # the training run ramps at 0.1 and 0.5 C/min only: every threshold in [0.1, 0.5) switches the
     # relay at the same instants, so the run says no more than that; the middle of that interval in

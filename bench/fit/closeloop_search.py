@@ -305,15 +305,17 @@ class SearchProblem:
         re-fitted in full at the delay chosen."""
         here, here_cost = self._best_value(family, others)
         tried: dict[float, tuple[float, float]] = {}       # delay -> (SSR, width)
+        # the width stays within the range where it is meaningful (``fx.Family.bounds``) at every delay
+        lw = np.log(here.value)
+        low, high = (np.log(b) for b in family.bounds)
+        span = (min(lw, max(lw - DELAY_PROFILE_SPAN, low)), max(lw, min(lw + DELAY_PROFILE_SPAN, high)))
 
         def at(d: float) -> float:
             d = float(round(d))
             if d not in tried:
                 f = family.with_delay(d)
-                lw = np.log(here.value)
                 res = minimize_scalar(lambda v: self.ssr(others + (f.at(float(np.exp(v))),)),
-                                      bounds=(lw - DELAY_PROFILE_SPAN, lw + DELAY_PROFILE_SPAN),
-                                      method="bounded", options={"xatol": 0.03})
+                                      bounds=span, method="bounded", options={"xatol": 0.03})
                 tried[d] = (float(res.fun), float(np.exp(res.x)))
             return tried[d][0]
 
