@@ -214,3 +214,50 @@ def test_a_memory_starts_the_validation_run_in_the_state_that_run_shows_its_coef
     ch = close_loop(train, same, "t1 + t1^2", channels=["x"], bin_c=None)["channels"]["x"]
     assert [e["params"].get("start") for e in ch["effects_added"]] == ["continued"]
     assert "start_on_validation" not in ch["effects_added"][0]
+
+
+def _relay_one_step_at_a_time(x: np.ndarray, width_c: float, start: float) -> np.ndarray:
+    """The reversal relay's definition, sample by sample (the reference the array version must match)."""
+    out, s = np.empty(len(x)), float(np.sign(start))
+    hi = lo = prev = float(x[0])
+    for i, v in enumerate(x.tolist()):
+        o = None
+        hi, lo = max(hi, v), min(lo, v)
+        if s >= 0 and hi - v >= width_c:
+            level = hi - width_c
+            after = (level - v) / (prev - v) if prev > v and prev > level else 1.0
+            s, lo, o = -1.0, v, s - (s + 1.0) * after
+        elif s <= 0 and v - lo >= width_c:
+            level = lo + width_c
+            after = (v - level) / (v - prev) if v > prev and prev < level else 1.0
+            s, hi, o = 1.0, v, s + (1.0 - s) * after
+        out[i] = s if o is None else o
+        prev = v
+    return out
+
+
+def _play_one_step_at_a_time(x: np.ndarray, h: float, p0: float) -> np.ndarray:
+    out, p = np.empty(len(x)), p0
+    for i, v in enumerate(x.tolist()):
+        if v - h > p:
+            p = v - h
+        elif v + h < p:
+            p = v + h
+        out[i] = p
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_relay_and_play_memories_equal_their_step_by_step_definitions(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 20000))
+    # soaks, ramps and reversals with reading noise: long stretches without a switch and bursts of
+    # switching (a width near the noise)
+    x = np.cumsum(rng.normal(0, 0.05, n)) + 10 * np.sin(np.arange(n) / rng.uniform(50, 3000)) + rng.normal(0, 0.02, n)
+    for width in (0.01, 0.1, 1.0, 5.0, 50.0):
+        for start in (-1.0, 0.0, 1.0):
+            np.testing.assert_array_equal(fx.reversal_relay_state(x, width, start),
+                                          _relay_one_step_at_a_time(x, width, start))
+            p0 = float(x[0]) - start * width / 2
+            np.testing.assert_array_equal(fx._backlash(x, width / 2, p0), _play_one_step_at_a_time(x, width / 2, p0))
+    assert len(fx.reversal_relay_state(np.zeros(0), 1.0, 1.0)) == 0 and len(fx._backlash(np.zeros(0), 1.0, 0.0)) == 0

@@ -429,16 +429,47 @@ def play_memory(path: np.ndarray, width_c: float, start: float = 0.0) -> np.ndar
 
 
 def _backlash(x: np.ndarray, h: float, p0: float) -> np.ndarray:
-    """The play operator's position: p follows x only when x is more than ``h`` away from it."""
+    """The play operator's position: p follows x only when x is more than ``h`` away from it
+    (p_i = x_i - h when x_i - h > p_{i-1}, x_i + h when x_i + h < p_{i-1}, else p_{i-1}).
+    Computed a stretch at a time: while p is pushed up only it is the running maximum of x - h (and
+    of its start), while pushed down only the running minimum of x + h; a stretch ends at the first
+    push the other way (``_first_true`` grows its look-ahead, so a run costs O(n) array work plus a
+    few array calls per reversal)."""
+    x = np.asarray(x, dtype=np.float64)
     out = np.empty(len(x))
-    p = p0
-    for i, v in enumerate(x.tolist()):
-        if v > p + h:
-            p = v - h
-        elif v < p - h:
-            p = v + h
-        out[i] = p
+    p, i, rising = float(p0), 0, True
+    while i < len(x):
+        def pushed_back(c: np.ndarray, p=p, rising=rising):
+            run = np.maximum(p, np.maximum.accumulate(c - h)) if rising else np.minimum(p, np.minimum.accumulate(c + h))
+            before = np.concatenate([[p], run[:-1]])
+            return ((c + h < before) if rising else (c - h > before)), run
+        k, run = _first_true(x, i, pushed_back)
+        stop = len(x) if k is None else k
+        out[i:stop] = run[:stop - i]
+        if k is None:
+            break
+        p = float(x[k] + h) if rising else float(x[k] - h)
+        out[k] = p
+        i, rising = k + 1, not rising
     return out
+
+
+def _first_true(x: np.ndarray, start: int, test: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
+                first_look: int = 64) -> tuple[int | None, np.ndarray]:
+    """First index k >= start where ``test`` (a vectorised scan of x[start:...] returning a mask and the
+    scanned values, both depending only on the samples up to each index) is true, and the scanned
+    values from ``start`` up to k (to the end when never).  Looks ahead ``first_look`` samples, then
+    twice as far each time nothing is found, rescanning from ``start``."""
+    look = first_look
+    while True:
+        end = min(len(x), start + look)
+        mask, run = test(x[start:end])
+        hit = np.flatnonzero(mask)
+        if hit.size:
+            return start + int(hit[0]), run
+        if end == len(x):
+            return None, run
+        look *= 2
 
 
 # A memory follows the temperature, not its readings: the readings' noise and quantisation steps are
@@ -564,24 +595,35 @@ def reversal_relay_state(temp: np.ndarray, width_c: float, start: float) -> np.n
     The sample in whose step the switching level is crossed takes the share of the step after the
     crossing (T linear within the step), so that the state's means move continuously with the width
     and the path's timing, however coarse the samples."""
-    x = _hold_missing(np.asarray(temp, dtype=np.float64)).tolist()
+    x = _hold_missing(np.asarray(temp, dtype=np.float64))
     out = np.empty(len(x))
-    s = float(np.sign(start))
-    hi = lo = x[0] if x else 0.0
-    prev = hi
-    for i, v in enumerate(x):
-        o = None
-        hi, lo = max(hi, v), min(lo, v)
-        if s >= 0 and hi - v >= width_c:
+    if not len(x):
+        return out
+    s, i = float(np.sign(start)), 0
+    hi = lo = float(x[0])
+    while i < len(x):
+        def switch(c: np.ndarray, s=s, hi=hi, lo=lo):
+            his = np.maximum(hi, np.maximum.accumulate(c))
+            los = np.minimum(lo, np.minimum.accumulate(c))
+            down = (his - c >= width_c) if s >= 0 else np.zeros(len(c), bool)
+            up = (c - los >= width_c) if s <= 0 else np.zeros(len(c), bool)
+            return down | up, np.column_stack([his, los, down])
+        k, run = _first_true(x, i, switch)
+        stop = len(x) if k is None else k
+        out[i:stop] = s
+        if k is None:
+            break
+        v, prev = float(x[k]), float(x[max(k - 1, 0)])
+        hi, lo, down = (float(a) for a in run[k - i])
+        if down:
             level = hi - width_c
             after = (level - v) / (prev - v) if prev > v and prev > level else 1.0
-            s, lo, o = -1.0, v, s - (s + 1.0) * after
-        elif s <= 0 and v - lo >= width_c:
+            out[k], s, lo = s - (s + 1.0) * after, -1.0, v
+        else:
             level = lo + width_c
             after = (v - level) / (v - prev) if v > prev and prev < level else 1.0
-            s, hi, o = 1.0, v, s + (1.0 - s) * after
-        out[i] = s if o is None else o
-        prev = v
+            out[k], s, hi = s + (1.0 - s) * after, 1.0, v
+        i = k + 1
     return out
 
 

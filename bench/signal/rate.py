@@ -117,9 +117,11 @@ def _centred_slope_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float)
         half = max(1, (len(grid) - 1) // 2)
     if len(grid) < 3:
         return out
-    xg = np.interp(grid, to, xo)
+    # readings on a regular grid (as most loggers give them) are the grid: no interpolation either way
+    on_grid = len(to) == len(t) == len(grid) and np.array_equal(grid, to)
+    xg = xo if on_grid else np.interp(grid, to, xo)
     slope = _centred_slope(xg, half) / dt
-    rate = np.interp(t, grid, slope) * 60.0
+    rate = (slope if on_grid else np.interp(t, grid, slope)) * 60.0
     # samples near a gap longer than half the window: the filter saw interpolated, not measured data
     gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
     for g in gaps:
@@ -155,10 +157,10 @@ def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
     j = np.arange(n, dtype=np.float64) - n / 2.0
     c0 = np.concatenate([[0.0], np.cumsum(xc)])
     c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
-    centre = np.arange(half, n - half)
-    s0 = c0[centre + half + 1] - c0[centre - half]
-    s1 = c1[centre + half + 1] - c1[centre - half]
-    num = s1 - j[centre] * s0                # sum over k of k * x[i+k]
+    # window sums for the centres i = half .. n-half-1: c[i + half + 1] - c[i - half]
+    s0 = c0[w:] - c0[:n - w + 1]
+    s1 = c1[w:] - c1[:n - w + 1]
+    num = s1 - j[half:n - half] * s0         # sum over k of k * x[i+k]
     den = half * (half + 1) * w / 3.0        # sum over k of k^2
     out = np.empty(n)
     out[half:n - half] = num / den

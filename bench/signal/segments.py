@@ -90,14 +90,23 @@ class BlockPlan:
         idx_used = np.flatnonzero(self.used)
         first[self.ids_used[::-1]] = idx_used[::-1]                    # first sample of every block
         self.first_index = first[self.kept]
+        self._every_sample_used = bool(self.used.all())
+        self._counts: np.ndarray | None = None
         self.time_s = self.means(t)
 
     def means(self, values: np.ndarray) -> np.ndarray:
         """Mean of ``values`` (one per sample of the axis) over every kept block, NaN ignored."""
-        v = np.asarray(values, float)[self.used]
-        ok = np.isfinite(v)
-        n = np.bincount(self.ids_used, weights=ok.astype(float), minlength=self.n_blocks)
-        s = np.bincount(self.ids_used, weights=np.where(ok, v, 0.0), minlength=self.n_blocks)
+        v = np.asarray(values, float)
+        if not self._every_sample_used:
+            v = v[self.used]
+        if np.isfinite(v).all():       # the common case: the samples per block, counted once
+            if self._counts is None:
+                self._counts = np.bincount(self.ids_used, minlength=self.n_blocks).astype(float)
+            n, s = self._counts, np.bincount(self.ids_used, weights=v, minlength=self.n_blocks)
+        else:
+            ok = np.isfinite(v)
+            n = np.bincount(self.ids_used, weights=ok.astype(float), minlength=self.n_blocks)
+            s = np.bincount(self.ids_used, weights=np.where(ok, v, 0.0), minlength=self.n_blocks)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(n > 0, s / np.maximum(n, 1), np.nan)[self.kept]
 
