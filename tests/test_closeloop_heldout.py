@@ -31,6 +31,11 @@ SUBSET = [
     ("gradual_hysteresis", 1),
     ("unexplained_sinusoid", 1),
     ("unexplained_step", 1),
+    # a bias step no column records: a warm-up of 9120 s, a Duhem memory and a gradient fitted it
+    # together on TRAIN (taken as a triple, the residual still above its floor) and the warm-up was
+    # kept on VALIDATE (partly explained); three effects at once are taken only when they bring the
+    # training residual to its floor
+    ("unexplained_step", 43),
 ]
 
 

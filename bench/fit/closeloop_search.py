@@ -49,6 +49,7 @@ DELAY_PROFILE_SPAN = float(np.log(2.0))
 CV_FOLDS = 8
 PAIR_POOL = 8
 PAIR_DBIC = 6.0
+TRIPLE_POOL = 8               # the pool the triples of the first steps are drawn from (``search``)
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
@@ -545,7 +546,10 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     whitest candidate model of the step), so that a candidate does not win by whitening its own
     residual; each must pass the gates with its own effective n.  Pairs of the strongest families are
     fitted jointly at every step; a pair is taken instead of the best single when its BIC is lower by
-    more than ``PAIR_DBIC`` (two effects at once that no single one explains well).  The search stops
+    more than ``PAIR_DBIC`` (two effects at once that no single one explains well).  When a pair passes
+    and the step's pick leaves the training residual above its floor, triples of the same pool are
+    fitted too; one is taken in the pick's place on the same terms, and only when it brings the training
+    residual to its floor (effects whose contributions partly cancel on the run).  The search stops
     at the training noise floor (``stop_std100``, then ``stop_at`` of the effects chosen), unless the
     single addition the step would make lowers that floor by more than ``AT_FLOOR_RATIO``."""
     chosen: tuple[fx.Effect, ...] = ()
@@ -581,18 +585,7 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
                 if eff.kind not in kinds and len(pool) < PAIR_POOL:
                     pool.append(eff)
                     kinds.add(eff.kind)
-            for a, b in combinations(pool, 2):
-                if a.family == b.family:
-                    continue
-                pair = problem.refit_params(chosen + (a, b))[len(chosen):]
-                new = problem.score(chosen + pair)
-                ev = gates(problem, base, new, pair)
-                if ev["passed"]:
-                    each = [hac_wald_p(*_xy(problem, chosen + pair), _cols_of(problem, chosen + pair, j))
-                            for j in range(len(chosen), len(chosen) + 2)]
-                    ev["each_hac_wald_p"] = each
-                    ev["passed"] = max(each) < P_MAX
-                pairs.append((pair, new, ev))
+            pairs = _joint_moves(problem, chosen, base, pool, 2)
         everything = ranked + pairs
         if not everything:
             break
@@ -615,6 +608,25 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
                                                and passing_pairs[0][1].cv < pick[1].cv * (1 - MIN_CV_GAIN)
                                                and not _at_floor(pick, chosen, stop_at))):
             pick = passing_pairs[0]
+        passing_triples = []
+        if (passing_pairs and len(chosen) + 3 <= MAX_EFFECTS and pick is not None
+                and not _at_floor(pick, chosen, stop_at)):
+            # three effects whose contributions partly cancel on the training run (a warm-up, a drift
+            # and a gradient that follows the run's course) can each fit little alone or in pairs and
+            # all of it together: once a pair shows there is more than one effect and the step's pick
+            # leaves the training residual above its floor, triples are fitted too
+            passing_triples = [r for r in _joint_moves(problem, chosen, base, pool[:TRIPLE_POOL], 3)
+                               if r[2]["passed"]]
+        if passing_triples:
+            # compared at the effective n of the whitest of them all
+            n3 = max(n_ref, max(r[1].n_eff for r in passing_triples))
+            best3 = min(passing_triples, key=lambda r: problem.bic(chosen + r[0], n3))
+            # three effects taken in one step must account for the whole training residual (down to its
+            # noise floor): three bent to share a driver no candidate models fit some of it, not all
+            if (problem.bic(chosen + best3[0], n3) < problem.bic(chosen + pick[0], n3) - PAIR_DBIC
+                    and best3[1].cv < pick[1].cv * (1 - MIN_CV_GAIN) and _at_floor(best3, chosen, stop_at)):
+                pick = (_simplest_of_ties(problem, chosen, best3[0]),) + best3[1:]
+                bic[id(pick)] = problem.bic(chosen + pick[0], n_ref)
         if at_floor and (pick is None or not stop_at(chosen + pick[0]) * AT_FLOOR_RATIO < stop_std100):
             # the floor the residual is judged against is read from that residual, and slow structure
             # still in it reads as flicker noise and lifts it: the search goes on at the floor only when
@@ -625,6 +637,8 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
             break
         move, new, ev = pick
         ev["pair"] = len(move) == 2
+        if len(move) == 3:
+            ev["triple"] = True
         runner = next((r for r in passing if r is not pick and r[0][0].family != move[0].family), None)
         ev["runner_up"] = _describe(runner[0][0], runner[2]) if runner else None
         ev["bic_margin_to_runner_up"] = float(bic[id(runner)] - bic[id(pick)]) if runner else None
@@ -648,6 +662,54 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     if moved:
         steps.append({"rate_window_settled": moved})
     return settled, steps
+
+
+def _joint_moves(problem: SearchProblem, chosen: tuple[fx.Effect, ...], base: Scored, pool: list[fx.Effect],
+                 size: int) -> list[tuple[tuple[fx.Effect, ...], Scored, dict[str, Any]]]:
+    """Every ``size`` effects of ``pool`` (distinct families) added to ``chosen`` together, their
+    nonlinear parameters re-fitted jointly: the move, its score and its gates (each added effect's own
+    HAC Wald p below ``P_MAX`` too)."""
+    out = []
+    for combo in combinations(pool, size):
+        if len({e.family for e in combo}) < size:
+            continue
+        move = problem.refit_params(chosen + combo)[len(chosen):]
+        new = problem.score(chosen + move)
+        ev = gates(problem, base, new, move)
+        if ev["passed"]:
+            each = [hac_wald_p(*_xy(problem, chosen + move), _cols_of(problem, chosen + move, j))
+                    for j in range(len(chosen), len(chosen) + size)]
+            ev["each_hac_wald_p"] = each
+            ev["passed"] = max(each) < P_MAX
+        out.append((move, new, ev))
+    return out
+
+
+def _simplest_of_ties(problem: SearchProblem, chosen: tuple[fx.Effect, ...],
+                      move: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
+    """Each effect of a joint move in turn: a family of its kind with fewer searched parameters
+    (``fx.Family.n_nonlinear``: the own probe's lag in place of another probe's) whose fit in its place,
+    the others held, the training BIC cannot tell from it (within ``TIE_DBIC``) is taken instead, as the
+    search's tie rule does for a single addition.  The effects of a joint move start from the strongest
+    family of each kind alone, and a re-fit moves a family only beyond a tie."""
+    current = tuple(move)
+    n_eff = problem.score(chosen + current, with_cv=False).n_eff
+    for i, eff in enumerate(current):
+        others = chosen + current[:i] + current[i + 1:]
+        here = problem.bic(chosen + current, n_eff)
+        best: tuple[tuple[int, float], tuple[fx.Effect, ...]] | None = None
+        for fam in problem.families:
+            if (fam.kind != eff.kind or fam.n_nonlinear >= eff.family.n_nonlinear
+                    or any(o.family == fam for o in others)):
+                continue
+            cand, _s = problem.best_value(fam, others)
+            trial = current[:i] + (cand,) + current[i + 1:]
+            b = problem.bic(chosen + trial, n_eff)
+            if b - here < TIE_DBIC and (best is None or (fam.n_nonlinear, b) < best[0]):
+                best = ((fam.n_nonlinear, b), trial)
+        if best is not None:
+            current = best[1]
+    return current
 
 
 def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
