@@ -728,6 +728,13 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         mine = p != own
         out.append(Family("rate", (("probe", p),), lambda x, w, p=p: {f"d{p}[{w:.0f}s]": x.rate(p, w)},
                           RATE_WINDOW_PARAM, RATE_WINDOWS_S, chosen_probe=mine))
+        if ctx.rate_window_s:
+            # the same rate through the declared model's own filter: nothing searched but the probe (a
+            # window the data barely pin pays a whole parameter and lost a true rate to a gradient
+            # that fits it alike)
+            w0 = float(ctx.rate_window_s)
+            out.append(Family("rate", (("probe", p), ("form", "declared_window"), (RATE_WINDOW_PARAM, f"{w0:.0f}")),
+                              lambda x, _v, p=p, w0=w0: {f"d{p}[{w0:.0f}s]": x.rate(p, w0)}, chosen_probe=mine))
         out.append(Family("rate_squared", (("probe", p),),
                           lambda x, w, p=p: {f"d{p}[{w:.0f}s]^2": x.own_rate(
                               ("rate^2", p, round(float(w), 3)), lambda s: s.rate(p, w) ** 2)},
