@@ -49,7 +49,6 @@ DELAY_PROFILE_SPAN = float(np.log(2.0))
 CV_FOLDS = 8
 PAIR_POOL = 8
 PAIR_DBIC = 6.0
-TRIPLE_POOL = 8               # the pool the triples of the first steps are drawn from (``search``)
 SCORED_SINGLES = 12
 JOINT_SWEEPS = 2
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
@@ -615,7 +614,7 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
             # and a gradient that follows the run's course) can each fit little alone or in pairs and
             # all of it together: once a pair shows there is more than one effect and the step's pick
             # leaves the training residual above its floor, triples are fitted too
-            passing_triples = [r for r in _joint_moves(problem, chosen, base, pool[:TRIPLE_POOL], 3)
+            passing_triples = [r for r in _joint_moves(problem, chosen, base, pool, 3)
                                if r[2]["passed"]]
         if passing_triples:
             # compared at the effective n of the whitest of them all
