@@ -537,7 +537,8 @@ def cv_gain_text(evidence: dict[str, Any]) -> str:
 
 
 def search(problem: SearchProblem, stop_std100: float | None = None,
-           stop_at: Callable[[tuple[fx.Effect, ...]], float] | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
+           stop_at: Callable[[tuple[fx.Effect, ...]], float] | None = None,
+           white_at: Callable[[tuple[fx.Effect, ...]], bool] | None = None) -> tuple[tuple[fx.Effect, ...], list[dict[str, Any]]]:
     """Forward selection with pair look-ahead, joint re-fits and swaps.  Returns the chosen effects
     and the evidence of each step (what was added, its gates, the runner-up).
 
@@ -548,7 +549,8 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
     more than ``PAIR_DBIC`` (two effects at once that no single one explains well).  When a pair passes
     and the step's pick leaves the training residual above its floor, triples of the same pool are
     fitted too; one is taken in the pick's place on the same terms, and only when it brings the training
-    residual to its floor (effects whose contributions partly cancel on the run).  The search stops
+    residual to its floor and leaves it white under its noise model (``white_at``; effects whose
+    contributions partly cancel on the run).  The search stops
     at the training noise floor (``stop_std100``, then ``stop_at`` of the effects chosen), unless the
     single addition the step would make lowers that floor by more than ``AT_FLOOR_RATIO``."""
     chosen: tuple[fx.Effect, ...] = ()
@@ -621,9 +623,13 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
             n3 = max(n_ref, max(r[1].n_eff for r in passing_triples))
             best3 = min(passing_triples, key=lambda r: problem.bic(chosen + r[0], n3))
             # three effects taken in one step must account for the whole training residual (down to its
-            # noise floor): three bent to share a driver no candidate models fit some of it, not all
+            # noise floor): three bent to share a driver no candidate models fit some of it, not all.
+            # That floor is read from the residual they leave, and what they leave of such a driver lifts
+            # its flicker term; the structure shows in the residual's block means, which the noise model
+            # does not whiten
             if (problem.bic(chosen + best3[0], n3) < problem.bic(chosen + pick[0], n3) - PAIR_DBIC
-                    and best3[1].cv < pick[1].cv * (1 - MIN_CV_GAIN) and _at_floor(best3, chosen, stop_at)):
+                    and best3[1].cv < pick[1].cv * (1 - MIN_CV_GAIN) and _at_floor(best3, chosen, stop_at)
+                    and (white_at is None or white_at(chosen + best3[0]))):
                 pick = (_simplest_of_ties(problem, chosen, best3[0]),) + best3[1:]
                 bic[id(pick)] = problem.bic(chosen + pick[0], n_ref)
         if at_floor and (pick is None or not stop_at(chosen + pick[0]) * AT_FLOOR_RATIO < stop_std100):
