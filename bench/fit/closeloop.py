@@ -226,16 +226,19 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
 
     noise_models: dict[tuple[str, ...], Any] = {(): model_start}
 
+    def train_residual(effs):
+        # the full-rate training residual of the declared model plus ``effs``
+        Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
+        return y_train - Xt @ lstsq(Xt, y_train)
+
     def noise_for(effs):
-        # the noise model of the full-rate training residual of the declared model plus ``effs``
+        # the noise model of that residual
         key = tuple(e.label for e in effs)
         got = noise_models.get(key)
         if got is None:
-            Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
-            r = y_train - Xt @ lstsq(Xt, y_train)
             if len(noise_models) > 64:
                 noise_models.clear()
-            got = noise_models[key] = fit_noise_model([(r, sample_period(t_tr), t_tr)])
+            got = noise_models[key] = fit_noise_model([(train_residual(effs), sample_period(t_tr), t_tr)])
         return got
 
     problem.noise_for = noise_for
@@ -247,8 +250,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
 
     def white_at(effs) -> bool:
         # the training residual's 100-s means, whitened by its own noise model, pass the whiteness test
-        Xt = np.column_stack([design.train] + [np.column_stack(list(e.columns(inputs_tr).values())) for e in effs])
-        r = y_train - Xt @ lstsq(Xt, y_train)
+        r = train_residual(effs)
         means, idx = window_means(t_tr, r, BLOCK_S), window_numbers(t_tr, r, BLOCK_S)
         if len(means) < 12:
             return True
