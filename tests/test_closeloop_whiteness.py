@@ -5,19 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.fit.closeloop import describe_structure
-from bench.fit.metrics import window_means, window_numbers
-from bench.fit.noisefloor import block_covariance, fit_noise_model
+from bench.fit.metrics import window_means
 from bench.signal import ljung_box
 from tests.test_closeloop_periodic import _flicker
-
-
-def _judge(x: np.ndarray, t: np.ndarray) -> dict:
-    model = fit_noise_model([(x - x.mean(), 1.0, t)])
-    idx = window_numbers(t, x, 100.0)
-    floor = model.floor_over(idx)
-    st = describe_structure(x, t, floor["noise_floor_dph"], block_covariance(model, idx))
-    return {**st, "floor": floor["noise_floor_dph"]}
+from tests.test_closeloop_periodic import judged_against_own_noise_model as _judge
 
 
 def test_flicker_noise_alone_is_white_under_its_own_noise_model():
