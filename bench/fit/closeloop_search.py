@@ -50,6 +50,7 @@ CV_FOLDS = 8
 PAIR_POOL = 8
 PAIR_DBIC = 6.0
 SCORED_SINGLES = 12
+SSR_MEMO = 200_000            # training SSRs kept per search problem (by the effects' labels)
 JOINT_SWEEPS = 2
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
 EXCHANGE_ROUNDS = 4
@@ -126,6 +127,7 @@ class SearchProblem:
     _cache: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     _folds: list[tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     _projectors: dict[tuple[str, ...], "_Projector"] = field(default_factory=dict, repr=False)
+    _ssrs: dict[tuple[str, ...], float] = field(default_factory=dict, repr=False)
     _plan: BlockPlan | None = field(default=None, repr=False)     # the evidence blocks of the fine grid
 
     def __post_init__(self) -> None:
@@ -190,6 +192,17 @@ class SearchProblem:
         return gls_f_test(W, X0[ok], X1[ok], self.yb[ok])[1]
 
     def ssr(self, effects: tuple[fx.Effect, ...]) -> float:
+        """The training SSR of the declared design with ``effects`` added (kept per set of labels: the
+        search asks for the same set again in its sweeps, pairs and exchanges)."""
+        key = tuple(e.label for e in effects)
+        got = self._ssrs.get(key)
+        if got is None:
+            if len(self._ssrs) > SSR_MEMO:
+                self._ssrs.clear()
+            got = self._ssrs[key] = self._ssr(effects)
+        return got
+
+    def _ssr(self, effects: tuple[fx.Effect, ...]) -> float:
         if effects:
             got = self.projector(effects[:-1]).ssr_with(self.columns(effects[-1]))
             if got is not None:
@@ -434,25 +447,29 @@ class _Projector:
         self.q = u[:, sv > sv[0] * 1e-10] if len(sv) else u[:, :0]
         yo = y[self.ok]
         self.yr = yo - self.q @ (self.q.T @ yo)
+        self.yy = float(self.yr @ self.yr)
 
     def ssr_with(self, Z: np.ndarray) -> float | None:
         Zo = Z[self.ok]
-        if not np.all(np.isfinite(Zo)):
+        if not np.isfinite(Zo).all():
             return None
         Zr = Zo - self.q @ (self.q.T @ Zo)
         norms = np.sqrt(np.einsum("ij,ij->j", Zr, Zr))
         keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.einsum("ij,ij->", Zo, Zo))))
         if not keep.any():
-            return float(self.yr @ self.yr)
+            return self.yy
         W = Zr[:, keep] / norms[keep]
         # the few added columns: their own small Gram matrix (eigen-decomposed, rank-revealing like
         # the pseudo-inverse) instead of a general least-squares call per candidate
         g = W.T @ W
         c = W.T @ self.yr
+        if g.shape == (1, 1):
+            # one column: its 1x1 Gram matrix is its own eigenvalue (the same numbers, without the call)
+            return max(float(self.yy - np.sum(c ** 2 / g[0])), 0.0)
         lam, v = np.linalg.eigh(g)
         good = lam > lam[-1] * 1e-10
         proj = v[:, good].T @ c
-        return max(float(self.yr @ self.yr - np.sum(proj ** 2 / lam[good])), 0.0)
+        return max(float(self.yy - np.sum(proj ** 2 / lam[good])), 0.0)
 
 
 def evidence_blocks(fine_time: np.ndarray, cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

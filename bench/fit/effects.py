@@ -43,6 +43,7 @@ run or its block means (the search runs on block means: the regressors are smoot
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from itertools import combinations
 from typing import Callable
 
@@ -50,7 +51,7 @@ import numpy as np
 
 from bench.fit import prep
 from bench.fit.base import Dataset
-from bench.signal import BlockPlan, block_means, linear_recurrence, orientation_axes_per_sample, run_segments, temperature_rate
+from bench.signal import BlockPlan, CentredSlopeRate, block_means, linear_recurrence, orientation_axes_per_sample, run_segments
 
 T0_C = 25.0
 LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -124,8 +125,11 @@ class Inputs:
                 # rate of block means would be a coarser filter, at least three blocks wide)
                 got = cache[key] = self._from_source(self.source.rate(probe, window_s, near_gaps))
             else:
+                slopes = self.__dict__.setdefault("_slope_cache", {})
+                if probe not in slopes:
+                    slopes[probe] = CentredSlopeRate(self.time, self.temps[probe])
                 got = cache[key] = rate_c_per_min(self.temps[probe], self.time, max(float(window_s), 3 * self.dt),
-                                                  near_gaps)
+                                                  near_gaps, slopes[probe])
         return got
 
     def own_rate(self, key: tuple, column: Callable[["Inputs"], np.ndarray]) -> np.ndarray:
@@ -239,7 +243,7 @@ class Family:
             return (g[0], g[0]) if g else (float("nan"), float("nan"))
         return (g[0] * g[0] / g[1], g[-1] * g[-1] / g[-2])
 
-    @property
+    @cached_property
     def label(self) -> str:
         """The family's name (its identity: a memory's delay is a searched value, in ``Effect.label``)."""
         return self.kind + "(" + ", ".join(f"{k}={v}" for k, v in self.fixed) + ")"
@@ -289,8 +293,9 @@ class Effect:
             out["delay_s"] = _round(self.family.delay_s)
         return out
 
-    @property
+    @cached_property
     def label(self) -> str:
+        # cached: the search's column and projector caches are keyed by it, hundreds of thousands of times
         values = [f"{self.family.param}={_round(self.value)}"] if self.family.param else []
         if self.family.delayed:
             values.append(f"delay_s={_round(self.family.delay_s)}")
@@ -372,15 +377,15 @@ def _hold_missing(x: np.ndarray) -> np.ndarray:
 
 
 def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0,
-                   near_gaps: str = "present") -> np.ndarray:
+                   near_gaps: str = "present", slope: CentredSlopeRate | None = None) -> np.ndarray:
     """dT/dt in C/min (``bench.signal.temperature_rate``, centred slope, as the declared models' rate
     terms).  Beside a logger outage (``near_gaps="present"``) the slope of the readings present in the
     window: an element kept changing its temperature while the logger was off, its rate is not zero
     there; NaN -> 0 where even that is undefined, so a regressor column stays usable.  With
     ``near_gaps="missing"`` NaN stays NaN there (a relay holds its state: a one-sided slope beside an
     outage is too noisy to latch on; measured: a rate relay at 1.45x the oracle's error with it, 0.97x
-    holding)."""
-    rate = temperature_rate(time_s, temp, window_s, method="centred_slope", near_gaps=near_gaps)
+    holding).  ``slope``: the record's ``CentredSlopeRate`` when it is kept for many windows."""
+    rate = (slope or CentredSlopeRate(time_s, temp)).rate(window_s, near_gaps)
     return rate if near_gaps == "missing" else np.nan_to_num(rate, nan=0.0)
 
 

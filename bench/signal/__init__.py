@@ -4,7 +4,8 @@ and engine code share.  Pure functions over numpy arrays; units in every docstri
 * ``segments``: ``run_segments``, ``block_means`` (segment-aware, NaN ignored per column), ``BlockPlan``
   (the same blocks computed once for many columns).
 * ``rate``: ``temperature_rate(time_s, temp_c, window_s, method=...)`` in C/min
-  (``RATE_METHODS``: "centred_slope", "savgol2"), ``smoothed_temperature``.
+  (``RATE_METHODS``: "centred_slope", "savgol2"), ``smoothed_temperature``; ``CentredSlopeRate`` for
+  one record's centred-slope rate at many windows.
 * ``allan``: ``allan_deviation`` (one NaN policy, ``MIN_ALLAN_SAMPLES``).
 * ``stats``: ``lag1_autocorrelation``, ``newey_west_lags``, ``ols_hac`` -> ``HacFit``, ``hac_wald_test``
   (chi2), ``ljung_box``.
@@ -31,6 +32,7 @@ from bench.signal.geometry import (
 from bench.signal.lstsq import LinearFit, bic, lstsq
 from bench.signal.rate import (
     DEFAULT_RATE_METHOD,
+    CentredSlopeRate,
     RATE_METHODS,
     check_rate_method,
     smoothed_temperature,
@@ -52,7 +54,7 @@ from bench.signal.stats import (
 )
 
 __all__ = [
-    "AllanDeviation", "BlockMeans", "BlockPlan", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
+    "AllanDeviation", "BlockMeans", "BlockPlan", "CentredSlopeRate", "DEFAULT_ORIENTATION", "DEFAULT_RATE_METHOD", "EARTH_RATE_DPH",
     "EIGHT_POSITIONS", "HacFit", "LinearFit", "MIN_ALLAN_SAMPLES", "OrientationError", "RATE_METHODS", "WaldTest",
     "allan_deviation", "bic", "block_means", "check_rate_method", "code_matrix", "column_scale",
     "earth_rate_body", "earth_rate_body_per_sample", "earth_rate_enu", "finite_rows", "hac_wald_test",

@@ -43,19 +43,11 @@ def temperature_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float, me
     if method == "savgol2":
         return _savgol(time_s, temp_c, window_s, segments)[1]
     if segments is None:
-        rate = _centred_slope_rate(time_s, temp_c, window_s)
-        if near_gaps == "present":
-            t = np.asarray(time_s, dtype=np.float64)
-            x = np.asarray(temp_c, dtype=np.float64)
-            ok = np.isfinite(x) & np.isfinite(t)
-            fill = np.isnan(rate) & (t >= t[ok][0]) & (t <= t[ok][-1]) if ok.any() else np.zeros(len(t), bool)
-            if fill.any():
-                rate[fill] = _present_slope(t[ok], x[ok], t[fill], window_s)
-        return rate
+        return CentredSlopeRate(time_s, temp_c).rate(window_s, near_gaps)
     t = np.asarray(time_s, dtype=np.float64)
     out = np.full(t.size, np.nan)
     for seg in segments:
-        out[seg] = _centred_slope_rate(t[seg], np.asarray(temp_c, dtype=np.float64)[seg], window_s)
+        out[seg] = CentredSlopeRate(t[seg], np.asarray(temp_c, dtype=np.float64)[seg]).rate(window_s)
     return out
 
 
@@ -100,37 +92,59 @@ def _savgol(time_s: np.ndarray, temp_c: np.ndarray, window_s: float,
     return smooth, rate
 
 
-def _centred_slope_rate(time_s: np.ndarray, temp_c: np.ndarray, window_s: float) -> np.ndarray:
-    t = np.asarray(time_s, dtype=np.float64)
-    x = np.asarray(temp_c, dtype=np.float64)
-    out = np.full(len(t), np.nan)
-    ok = np.isfinite(x) & np.isfinite(t)
-    if ok.sum() < 3:
+class CentredSlopeRate:
+    """The ``centred_slope`` rate (C/min) of one record, at any window: what does not depend on the
+    window (the readings on their regular grid, their cumulative sums, the gaps) is done once, so that
+    a search over windows pays only for each window's own sums."""
+
+    def __init__(self, time_s: np.ndarray, temp_c: np.ndarray) -> None:
+        self.t = t = np.asarray(time_s, dtype=np.float64)
+        self.x = x = np.asarray(temp_c, dtype=np.float64)
+        self.ok = ok = np.isfinite(x) & np.isfinite(t)
+        self.sums: _SlopeSums | None = None
+        if ok.sum() < 3:
+            return
+        self.to, self.xo = to, xo = t[ok], x[ok]
+        self.dt = dt = float(np.median(np.diff(to)))
+        if dt <= 0:
+            raise ValueError("temperature_rate: time must increase")
+        self.grid = grid = np.arange(to[0], to[-1] + dt / 2, dt)
+        if len(grid) < 3:
+            return
+        # readings on a regular grid (as most loggers give them) are the grid: no interpolation either way
+        self.on_grid = len(to) == len(t) == len(grid) and np.array_equal(grid, to)
+        self.sums = _SlopeSums(xo if self.on_grid else np.interp(grid, to, xo))
+        self.steps = np.diff(to)
+        self.outside = (t < to[0]) | (t > to[-1])
+
+    def rate(self, window_s: float, near_gaps: str = "missing") -> np.ndarray:
+        """dT/dt over ``window_s`` (``temperature_rate``'s ``centred_slope`` of the whole record, with its
+        ``near_gaps`` rule)."""
+        if near_gaps not in ("missing", "present"):
+            raise ValueError(f"near_gaps must be 'missing' or 'present', got {near_gaps!r}")
+        t = self.t
+        out = np.full(len(t), np.nan)
+        if self.sums is None:
+            return out
+        dt, to = self.dt, self.to
+        half = max(1, int(round(window_s / dt / 2.0)))
+        if len(self.grid) < 2 * half + 1:
+            half = max(1, (len(self.grid) - 1) // 2)
+        slope = self.sums.slope(half) / dt
+        rate = (slope if self.on_grid else np.interp(t, self.grid, slope)) * 60.0
+        # samples near a gap longer than half the window: the filter saw interpolated, not measured data
+        gaps = np.flatnonzero(self.steps > max(window_s / 2.0, 1.5 * dt))
+        for g in gaps:
+            lo, hi = to[g], to[g + 1]
+            out_mask = (t > lo - window_s / 2.0 + dt) & (t < hi + window_s / 2.0 - dt) & (hi - lo > window_s / 2.0)
+            rate[out_mask] = np.nan
+        rate[self.outside] = np.nan
+        out[:] = rate
+        if near_gaps == "present":
+            fill = np.isnan(out) & (t >= to[0]) & (t <= to[-1])
+            if fill.any():
+                out[fill] = _present_slope(to, self.xo, t[fill], window_s)
         return out
-    to, xo = t[ok], x[ok]
-    dt = float(np.median(np.diff(to)))
-    if dt <= 0:
-        raise ValueError("temperature_rate: time must increase")
-    half = max(1, int(round(window_s / dt / 2.0)))
-    grid = np.arange(to[0], to[-1] + dt / 2, dt)
-    if len(grid) < 2 * half + 1:
-        half = max(1, (len(grid) - 1) // 2)
-    if len(grid) < 3:
-        return out
-    # readings on a regular grid (as most loggers give them) are the grid: no interpolation either way
-    on_grid = len(to) == len(t) == len(grid) and np.array_equal(grid, to)
-    xg = xo if on_grid else np.interp(grid, to, xo)
-    slope = _centred_slope(xg, half) / dt
-    rate = (slope if on_grid else np.interp(t, grid, slope)) * 60.0
-    # samples near a gap longer than half the window: the filter saw interpolated, not measured data
-    gaps = np.flatnonzero(np.diff(to) > max(window_s / 2.0, 1.5 * dt))
-    for g in gaps:
-        lo, hi = to[g], to[g + 1]
-        out_mask = (t > lo - window_s / 2.0 + dt) & (t < hi + window_s / 2.0 - dt) & (hi - lo > window_s / 2.0)
-        rate[out_mask] = np.nan
-    rate[(t < to[0]) | (t > to[-1])] = np.nan
-    out[:] = rate
-    return out
 
 
 def _present_slope(t: np.ndarray, x: np.ndarray, at: np.ndarray, window_s: float) -> np.ndarray:
@@ -147,23 +161,28 @@ def _present_slope(t: np.ndarray, x: np.ndarray, at: np.ndarray, window_s: float
     return np.where((n >= 3) & (den > 0), slope, np.nan) * 60.0
 
 
-def _centred_slope(x: np.ndarray, half: int) -> np.ndarray:
-    """Least-squares slope (per sample) over x[i-half .. i+half], O(n) with cumulative sums; at the
-    ends the slope of the first / last full window is used (= Savitzky-Golay polyorder 1, deriv 1,
-    mode "interp")."""
-    n = len(x)
-    w = 2 * half + 1
-    xc = x - x.mean()                       # keep cumulative sums small
-    j = np.arange(n, dtype=np.float64) - n / 2.0
-    c0 = np.concatenate([[0.0], np.cumsum(xc)])
-    c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
-    # window sums for the centres i = half .. n-half-1: c[i + half + 1] - c[i - half]
-    s0 = c0[w:] - c0[:n - w + 1]
-    s1 = c1[w:] - c1[:n - w + 1]
-    num = s1 - j[half:n - half] * s0         # sum over k of k * x[i+k]
-    den = half * (half + 1) * w / 3.0        # sum over k of k^2
-    out = np.empty(n)
-    out[half:n - half] = num / den
-    out[:half] = out[half]
-    out[n - half:] = out[n - half - 1]
-    return out
+class _SlopeSums:
+    """Least-squares slope (per sample) over x[i-half .. i+half] for any ``half``, O(n) with cumulative
+    sums taken once; at the ends the slope of the first / last full window is used (= Savitzky-Golay
+    polyorder 1, deriv 1, mode "interp")."""
+
+    def __init__(self, x: np.ndarray) -> None:
+        n = self.n = len(x)
+        xc = x - x.mean()                       # keep cumulative sums small
+        self.j = j = np.arange(n, dtype=np.float64) - n / 2.0
+        self.c0 = np.concatenate([[0.0], np.cumsum(xc)])
+        self.c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
+
+    def slope(self, half: int) -> np.ndarray:
+        n, c0, c1 = self.n, self.c0, self.c1
+        w = 2 * half + 1
+        # window sums for the centres i = half .. n-half-1: c[i + half + 1] - c[i - half]
+        s0 = c0[w:] - c0[:n - w + 1]
+        s1 = c1[w:] - c1[:n - w + 1]
+        num = s1 - self.j[half:n - half] * s0    # sum over k of k * x[i+k]
+        den = half * (half + 1) * w / 3.0        # sum over k of k^2
+        out = np.empty(n)
+        out[half:n - half] = num / den
+        out[:half] = out[half]
+        out[n - half:] = out[n - half - 1]
+        return out
