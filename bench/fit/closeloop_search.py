@@ -202,6 +202,21 @@ class SearchProblem:
             got = self._ssrs[key] = self._ssr(effects)
         return got
 
+    def ssr_each(self, others: tuple[fx.Effect, ...], candidates: list[fx.Effect]) -> list[float]:
+        """``ssr(others + (c,))`` for each candidate c, the candidates not yet kept projected together
+        (one product with the design's basis for all of them: a scan over a grid or a kind's families)."""
+        head = tuple(e.label for e in others)
+        keys = [head + (c.label,) for c in candidates]
+        out = [self._ssrs.get(k) for k in keys]
+        todo = [i for i, v in enumerate(out) if v is None]
+        if todo:
+            got = self.projector(others).ssr_each([self.columns(candidates[i]) for i in todo])
+            if len(self._ssrs) > SSR_MEMO:
+                self._ssrs.clear()
+            for i, v in zip(todo, got):
+                out[i] = self._ssrs[keys[i]] = v if v is not None else self._ssr(others + (candidates[i],))
+        return out
+
     def _ssr(self, effects: tuple[fx.Effect, ...]) -> float:
         if effects:
             got = self.projector(effects[:-1]).ssr_with(self.columns(effects[-1]))
@@ -349,14 +364,21 @@ class SearchProblem:
     def grid_ssr(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> float:
         """The family's lowest training SSR over its scan grid, ``others`` held: how well it could fill a
         place, before any refinement (the coarse ranking of swaps and exchanges)."""
-        return min(self.ssr(others + (family.at(v),)) for v in (family.grid or (None,)))
+        return min(self.ssr_each(others, [family.at(v) for v in (family.grid or (None,))]))
+
+    def grid_bic(self, family: fx.Family, others: tuple[fx.Effect, ...], n_eff: float) -> float:
+        """The family's lowest training BIC over its scan grid, ``others`` held (the coarse pass of a
+        re-fit over a kind's probes, pairs and forms)."""
+        cands = [family.at(v) for v in (family.grid or (None,))]
+        # one family: the same columns and penalty at every grid value, so the lowest BIC is at the lowest SSR
+        return self.bic(others + (cands[0],), n_eff, min(self.ssr_each(others, cands)))
 
     def _best_value(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         if not family.param:
             eff = family.at(None)
             return eff, self.ssr(others + (eff,))
         grid = list(family.grid)
-        costs = [self.ssr(others + (family.at(v),)) for v in grid]
+        costs = self.ssr_each(others, [family.at(v) for v in grid])
         i = int(np.argmin(costs))
         low, high = family.bounds
         lo = np.log(grid[i - 1] if i > 0 else min(low, grid[0]))
@@ -388,8 +410,7 @@ class SearchProblem:
                     [eff.family if f == eff.family else f for f in self.families
                      if f.kind == eff.kind and not any(o.family == f for o in others)]
                 if len(fams) > 1:        # coarse pass over the kind's probes/pairs/forms, refine the best two
-                    coarse = sorted(fams, key=lambda f: min(self.bic(others + (f.at(v),), n_eff)
-                                                            for v in (f.grid or (None,))))
+                    coarse = sorted(fams, key=lambda f: self.grid_bic(f, others, n_eff))
                     fams = coarse[:2]
                     if refine_delay and eff.family.delayed and eff.family not in fams:
                         fams.append(eff.family)      # a memory in place always has its delay profiled
@@ -406,9 +427,12 @@ class SearchProblem:
                 break
         return current
 
-    def bic(self, effects: tuple[fx.Effect, ...], n_eff: float) -> float:
+    def bic(self, effects: tuple[fx.Effect, ...], n_eff: float, ssr: float | None = None) -> float:
+        """The training BIC of the design with ``effects`` at effective n ``n_eff`` (``ssr``: their
+        training SSR when it is known)."""
         k = sum(self.columns(e).shape[1] for e in effects)
-        return (n_eff * np.log(max(self.ssr(effects), 1e-300)) + k * np.log(n_eff)
+        ssr = self.ssr(effects) if ssr is None else ssr
+        return (n_eff * np.log(max(ssr, 1e-300)) + k * np.log(n_eff)
                 + sum(e.family.penalty(n_eff) for e in effects))
 
     def swap(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
@@ -449,11 +473,43 @@ class _Projector:
         self.yr = yo - self.q @ (self.q.T @ yo)
         self.yy = float(self.yr @ self.yr)
 
+    def ssr_each(self, Zs: list[np.ndarray]) -> list[float | None]:
+        """``ssr_with`` of each Z, the projection of all of them done in one product."""
+        widths = [Z.shape[1] for Z in Zs]
+        Zo = np.column_stack(Zs)[self.ok]
+        Zr = Zo - self.q @ (self.q.T @ Zo)
+        starts = np.cumsum([0] + widths[:-1])
+        out: list[float | None] = [None] * len(Zs)
+        # one-column candidates all at once (``_ssr_of``'s steps, column by column)
+        one = [i for i, w in enumerate(widths) if w == 1]
+        if one:
+            cols = starts[one]
+            A, R = Zo[:, cols], Zr[:, cols]
+            finite = np.isfinite(A).all(axis=0)
+            norms = np.sqrt(np.einsum("ij,ij->j", R, R))
+            keep = norms > 1e-9 * np.maximum(1.0, np.sqrt(np.einsum("ij,ij->j", A, A)))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                W = R / norms
+                g = np.einsum("ij,ij->j", W, W)
+                c = W.T @ self.yr
+                ssr = np.maximum(self.yy - c ** 2 / g, 0.0)
+            for k, i in enumerate(one):
+                if finite[k]:
+                    out[i] = float(ssr[k]) if keep[k] else self.yy
+        for i, w in enumerate(widths):
+            if w != 1:
+                out[i] = self._ssr_of(Zo[:, starts[i]:starts[i] + w], Zr[:, starts[i]:starts[i] + w])
+        return out
+
     def ssr_with(self, Z: np.ndarray) -> float | None:
         Zo = Z[self.ok]
+        return self._ssr_of(Zo, Zo - self.q @ (self.q.T @ Zo))
+
+    def _ssr_of(self, Zo: np.ndarray, Zr: np.ndarray) -> float | None:
+        """The SSR with the columns Zo (rows of the design) added, Zr their residual after it; None
+        when a value is missing."""
         if not np.isfinite(Zo).all():
             return None
-        Zr = Zo - self.q @ (self.q.T @ Zo)
         norms = np.sqrt(np.einsum("ij,ij->j", Zr, Zr))
         keep = norms > 1e-9 * max(1.0, float(np.sqrt(np.einsum("ij,ij->", Zo, Zo))))
         if not keep.any():
