@@ -2,7 +2,7 @@
 
 PostgreSQL: tests of the PostgreSQL path run against the server at 127.0.0.1:5432 (override with
 BENCH_TEST_PG_URL).  When CI=true and the server is unreachable they FAIL; elsewhere they skip.
-Each test process (the suite runs in two, pytest-xdist) gets its own database, dropped at the end;
+Each test process (the suite runs in three, pytest-xdist) gets its own database, dropped at the end;
 tests whose services list every bench or job take a fresh one of their own (``pg_fresh_url``).
 """
 from __future__ import annotations
@@ -19,6 +19,21 @@ os.environ.setdefault("W1THERMSENSOR_NO_KERNEL_MODULE", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 PG_ADMIN_URL = os.environ.get("BENCH_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
+
+# The test processes take whole files in collection order (``--dist loadfile``); a long file handed out
+# last keeps one process busy after the others are done.  The longest files (measured, about 30 s to
+# 300 s each of one process's time) go first, longest first; the rest keep their order.
+LONGEST_FILES_FIRST = (
+    "test_closeloop_corpus.py", "test_referee4.py", "test_referee5.py", "test_closeloop_heldout.py",
+    "test_sim_lockstep.py", "test_api_process.py", "test_sigstop_drill.py", "test_jobs_drill.py",
+    "test_closeloop.py", "test_referee3.py", "test_api_schema.py", "test_dashboard_analyses.py",
+    "test_api_serve.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def _pg_unreachable(reason: str):

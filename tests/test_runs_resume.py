@@ -11,7 +11,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from sqlalchemy import select
+from sqlalchemy import func, select
 
 from bench.storage.db import open_database
 from bench.storage.models import FrameChunk, Gap, Run, Segment, Step
@@ -21,6 +21,7 @@ from tests.test_runs_support import cli, last_json
 OUTAGE_S = 120.0
 T0 = 1_767_225_600.0            # a seeded simulated bench starts at this bench instant
 HOLD_T = T0 + 500.0             # the ramp runs from about T0 + 132 s to T0 + 852 s
+TELEMETRY_LAG_S = 30.0          # the chamber is polled every few bench seconds
 PARAMS = ["start_c=30", "soak_h=0.02", "warmup_min=1", "rate_c_per_min=1", "end_c=42", "final_hold_min=1"]
 
 
@@ -32,7 +33,10 @@ def _chunks(db, rid):
 
 def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path, timeout_s: float = 120.0) -> None:
     """Until the run stands at the hold instant inside its ramp, with a checkpoint taken inside the
-    ramp stored and frames committed (the bench time does not move meanwhile)."""
+    ramp stored and frames and the chamber's telemetry up to the hold committed (the bench time does not
+    move meanwhile; telemetry rows commit on the wall clock, later than the frames on a loaded machine)."""
+    from bench.storage.models import Telemetry
+
     marker = Path(str(hold) + ".held")
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -43,8 +47,11 @@ def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path, timeou
                 ramp = s.scalars(select(Step).where(Step.run_id == rid, Step.kind == "ramp")).first()
                 cp = run.checkpoint if run is not None else None
                 frames = sum(c.count for c in s.execute(select(FrameChunk.count).where(FrameChunk.run_id == rid)))
+                last_pv_t = s.scalar(select(func.max(Telemetry.t)).where(
+                    Telemetry.run_id == rid, Telemetry.device == "chamber"))
             if (ramp is not None and ramp.status == "running" and cp and cp.get("step_index") == ramp.index
-                    and cp.get("step_state") and cp["step_state"].get("elapsed_s", 0) > 60 and frames > 100):
+                    and cp.get("step_state") and cp["step_state"].get("elapsed_s", 0) > 60 and frames > 100
+                    and last_pv_t is not None and last_pv_t >= HOLD_T - TELEMETRY_LAG_S):
                 return
         time.sleep(0.05)
     raise AssertionError("the run never stood in the middle of its ramp with its data committed")
