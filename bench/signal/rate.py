@@ -99,8 +99,8 @@ class CentredSlopeRate:
 
     def __init__(self, time_s: np.ndarray, temp_c: np.ndarray) -> None:
         self.t = t = np.asarray(time_s, dtype=np.float64)
-        self.x = x = np.asarray(temp_c, dtype=np.float64)
-        self.ok = ok = np.isfinite(x) & np.isfinite(t)
+        x = np.asarray(temp_c, dtype=np.float64)
+        ok = np.isfinite(x) & np.isfinite(t)
         self.sums: _SlopeSums | None = None
         if ok.sum() < 3:
             return
