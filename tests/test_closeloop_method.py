@@ -96,22 +96,42 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     assert absolute[0].bounds[0] == fx.ABSOLUTE_LAG_MIN_S and min(absolute[0].grid) >= fx.ABSOLUTE_LAG_MIN_S
 
 
+def _excursions_and_memory(open_above: bool) -> tuple[fx.Inputs, fx.Family]:
+    """A run of two excursions (20 -> 50 -> 0 -> 30 C) and a gradual memory on it whose width is limited
+    to 8 C (``open_above``: that limit is where the memory stops being one)."""
+    t = np.arange(5.0, 40000.0, FINE_S)
+    temp = np.interp(t, [0, 5000, 12000, 20000, 27000, 40000], [20, 50, 50, 0, 0, 30])
+    family = fx.Family("hysteresis", (("probe", "t1"), ("form", "gradual")),
+                       lambda x, w, delay=0.0: {"m": fx.duhem_memory(x.path("t1", delay), w)}, "width_c",
+                       (1.0, 2.0, 4.0, 8.0), limits=(0.5, 8.0), delayed=True, open_above=open_above)
+    return _inputs(t, temp), family
+
+
 def test_a_memorys_width_stays_within_its_meaningful_range_when_its_delay_is_profiled():
     # the data want a memory wider than the family allows (a wider one never saturates on this run): the
     # joint re-fit, which profiles the delay with the width re-fitted at each delay, must not leave the
     # range either (it once returned 30.7 C for a family limited to 27 C)
-    t = np.arange(5.0, 40000.0, FINE_S)
-    temp = np.interp(t, [0, 5000, 12000, 20000, 27000, 40000], [20, 50, 50, 0, 0, 30])
-    fine = _inputs(t, temp)
-    family = fx.Family("hysteresis", (("probe", "t1"), ("form", "gradual")),
-                       lambda x, w, delay=0.0: {"m": fx.duhem_memory(x.path("t1", delay), w)}, "width_c",
-                       (1.0, 2.0, 4.0, 8.0), limits=(0.5, 8.0), delayed=True)
+    fine, family = _excursions_and_memory(open_above=False)
     y = 0.5 * fx.duhem_memory(fine.path("t1", 60.0), 14.0)
     problem = _problem(fine, y, [family])
     plain, _ = problem.best_value(family, ())
     profiled, _ = problem.best_value(family, (), refine_delay=True)
     assert plain.value <= 8.0 and plain.value == pytest.approx(8.0, rel=0.05)
     assert profiled.value <= 8.0 + 1e-9
+
+
+def test_a_gradual_memory_the_data_want_wider_than_half_the_span_is_no_candidate():
+    # a memory as wide as half the probe's span barely saturates within the run: when the fit wants it
+    # at least that wide (open_above), the fit is a drift along the temperature's travel and the family
+    # fills no place (infinite cost, plain or with its delay profiled); a memory inside the range is kept
+    fine, family = _excursions_and_memory(open_above=True)
+    wide = _problem(fine, 0.5 * fx.duhem_memory(fine.path("t1", 60.0), 14.0), [family])
+    for refine in (False, True):
+        eff, cost = wide.best_value(family, (), refine_delay=refine)
+        assert family.open_end(eff.value) and cost == float("inf")
+    inside = _problem(fine, 0.5 * fx.duhem_memory(fine.path("t1", 0.0), 3.0), [family])
+    eff, cost = inside.best_value(family, ())
+    assert eff.value == pytest.approx(3.0, rel=0.1) and np.isfinite(cost) and not family.open_end(eff.value)
 
 
 def test_a_relay_threshold_the_training_run_pins_only_to_an_interval_is_taken_at_its_middle():

@@ -31,6 +31,20 @@ def test_referee3_case(cls, seed):
     assert r.passed, [(c.channel, c.failures) for c in r.channels]
 
 
+@pytest.mark.timeout(600)
+def test_a_time_drift_is_not_taken_for_a_memory_as_wide_as_the_run():
+    # time_drift 8: on its one-excursion training run a Duhem memory of 26.6 C (half the probe's span,
+    # the family's limit) once fitted the drift 10 in BIC better, did not generalise (0.195 deg/h on
+    # validation against 0.103 without it) and left the channel unexplained at 4.8x the oracle.  A
+    # memory that wants to be wider than the run saturates is no candidate: the drift is found, and the
+    # error is the oracle's.  The verdict is not asserted here: a second effect chosen on TRAIN that did
+    # not generalise (a lag) makes it partly_explained
+    r = score_case("time_drift", 8)
+    assert r.error is None, r.error
+    y = next(c for c in r.channels if c.channel == "y")
+    assert not [f for f in y.failures if f.startswith(("kinds", "error"))], y.failures
+
+
 def test_flicker_allan_floor_is_0664_b():
     """The generator's bias instability has the IEEE 952 Allan floor 0.664 B (within 15 %)."""
     rng = np.random.default_rng(3)

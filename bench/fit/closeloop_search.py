@@ -321,10 +321,12 @@ class SearchProblem:
         to the family's bounds: the grid is where the scan starts, not a limit on the answer).  With
         ``refine_delay`` a memory's delay (``fx.Family.delayed``) is searched too, the parameter
         re-fitted at each delay tried (the joint re-fit of added effects; candidates are scanned at
-        their family's current delay)."""
-        if refine_delay and family.delayed:
-            return self._best_delay(family, others)
-        return self._best_value(family, others)
+        their family's current delay).  An optimum at the family's open upper limit
+        (``fx.Family.open_end``) costs infinity: no place is filled by it."""
+        eff, cost = self._best_delay(family, others) if refine_delay and family.delayed else \
+            self._best_value(family, others)
+        # an optimum at an open upper limit (``fx.Family.open_end``) is not the family's effect
+        return (eff, float("inf")) if family.open_end(eff.value) else (eff, cost)
 
     def _best_delay(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> tuple[fx.Effect, float]:
         """Profile over the memory's delay: on the grid ``fx.MEMORY_DELAYS_S`` (and the current delay)
@@ -416,7 +418,9 @@ class SearchProblem:
                         fams.append(eff.family)      # a memory in place always has its delay profiled
                 for fam in fams:
                     # the memory's delay is profiled for the family in place (the others at its current delay)
-                    cand, _s = self.best_value(fam, others, refine_delay=refine_delay and fam == eff.family)
+                    cand, cost = self.best_value(fam, others, refine_delay=refine_delay and fam == eff.family)
+                    if not np.isfinite(cost):
+                        continue
                     trial = others[:i] + (cand,) + others[i:]
                     b = self.bic(trial, n_eff)
                     # BIC: another form or probe pays for its columns, and moves the choice only beyond
@@ -450,7 +454,9 @@ class SearchProblem:
             fams = [f for f in self.families if not any(o.family == f for o in current)]
             coarse = sorted(((self.grid_ssr(f, others), f) for f in fams), key=lambda c: c[0])
             for _, fam in coarse[:3]:
-                cand, _s = self.best_value(fam, others)
+                cand, cost = self.best_value(fam, others)
+                if not np.isfinite(cost):
+                    continue
                 trial = others[:i] + (cand,) + others[i:]
                 b = self.bic(trial, n_eff)
                 if b < best_bic - replacement_margin(cand.family, (current[i].family,)):
@@ -780,7 +786,9 @@ def _simplest_of_ties(problem: SearchProblem, chosen: tuple[fx.Effect, ...],
             if (fam.kind != eff.kind or fam.n_nonlinear >= eff.family.n_nonlinear
                     or any(o.family == fam for o in others)):
                 continue
-            cand, _s = problem.best_value(fam, others)
+            cand, cost = problem.best_value(fam, others)
+            if not np.isfinite(cost):
+                continue
             trial = current[:i] + (cand,) + current[i + 1:]
             b = problem.bic(chosen + trial, n_eff)
             if b - here < TIE_DBIC and (best is None or (fam.n_nonlinear, b) < best[0]):
@@ -823,7 +831,9 @@ def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
             for _s, k in coarse[:EXCHANGE_CANDIDATES]:
                 fam = problem.families[k]
                 for held in starts:
-                    cand, _c = problem.best_value(fam, held)
+                    cand, cost = problem.best_value(fam, held)
+                    if not np.isfinite(cost):
+                        continue
                     margin = replacement_margin(fam, tuple(r.family for r in removed),
                                                 restriction=len(removed) > 1 and problem.lies_within(cand, removed))
                     trial = problem.refit_params(held[:at] + (cand,) + held[at:], keep_families=True)

@@ -72,6 +72,7 @@ RATE_WINDOW_PARAM = "window_s"    # the searched parameter of the rate effects: 
 RELAY_THRESHOLDS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8)        # C/min
 RELAY_WINDOWS_S = (60.0, 120.0, 300.0, 600.0)                   # the relay's rate filter
 GRADUAL_WIDTHS_C = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)           # C
+OPEN_END_SHARE = 0.95        # a parameter within 5 % of an open upper limit is at it (``Family.open_end``)
 
 
 @dataclass(frozen=True)
@@ -223,6 +224,10 @@ class Family:
     # the columns change only where the parameter crosses a value the data reach (a relay's threshold,
     # a trigger's width): the training run pins it to an interval, not to a point
     stepwise: bool = False
+    # the parameter's upper limit is where the effect stops being itself: a gradual memory as wide as
+    # half the probe's span never saturates within the run, and its fit there is a drift along the
+    # temperature's travel, not a hysteresis.  An optimum at that end is not this effect (``open_end``)
+    open_above: bool = False
     # the simpler form of this effect (its kind and ``fixed``): its columns, with the declared model's,
     # lie within this one's (the cross term holds the rate), or this one is a particular case of it
     # (the lag through the declared model's shape); this one is taken over it only on strong evidence
@@ -242,6 +247,11 @@ class Family:
         if len(g) < 2:
             return (g[0], g[0]) if g else (float("nan"), float("nan"))
         return (g[0] * g[0] / g[1], g[-1] * g[-1] / g[-2])
+
+    def open_end(self, value: float | None) -> bool:
+        """``value`` sits at the upper limit of a family whose upper limit is not the effect
+        (``open_above``): the fit wants the parameter beyond where the effect is identified."""
+        return bool(self.open_above and value is not None and value >= self.bounds[1] * OPEN_END_SHARE)
 
     @cached_property
     def label(self) -> str:
@@ -770,7 +780,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
                         ((("start", start),) if start != "neutral" else ())
                     out.append(Family("hysteresis", fixed, gradual, "width_c", widths, chosen_probe=mine,
                                       limits=limits, variants=len(GRADUAL_SHAPES) * len(MEMORY_STARTS),
-                                      delayed=True))
+                                      delayed=True, open_above=True))
             for start in MEMORY_STARTS:
                 def reversal(x: Inputs, w, delay=0.0, p=p, start=start):
                     path = x.path(p, delay)
