@@ -20,9 +20,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 PG_ADMIN_URL = os.environ.get("BENCH_TEST_PG_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/test")
 
-# The test processes take whole files in collection order (``--dist loadfile``); a long file handed out
-# last keeps one process busy after the others are done.  The longest files (measured, about 30 s to
-# 300 s each of one process's time) go first, longest first; the rest keep their order.
+# The test processes take whole files (``--dist loadfile``); a long file handed out last keeps one
+# process busy after the others are done.  xdist hands the files out by their number of tests, most
+# first, and keeps collection order only among files with as many tests: this order (the longest files,
+# measured, about 30 s to 300 s each of one process's time, longest first) breaks those ties and sets
+# the order when the suite runs in one process.
 LONGEST_FILES_FIRST = (
     "test_closeloop_corpus.py", "test_referee4.py", "test_referee5.py", "test_closeloop_heldout.py",
     "test_sim_lockstep.py", "test_api_process.py", "test_sigstop_drill.py", "test_jobs_drill.py",

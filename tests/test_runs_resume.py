@@ -14,7 +14,7 @@ from pathlib import Path
 from sqlalchemy import func, select
 
 from bench.storage.db import open_database
-from bench.storage.models import FrameChunk, Gap, Run, Segment, Step
+from bench.storage.models import FrameChunk, Gap, ProbeReadingRow, Run, Segment, Step, Telemetry
 from tests.service_support import start_held_run
 from tests.test_runs_support import cli, last_json
 
@@ -35,8 +35,6 @@ def _wait_held_mid_ramp(db, rid: int, proc: subprocess.Popen, hold: Path, timeou
     """Until the run stands at the hold instant inside its ramp, with a checkpoint taken inside the
     ramp stored and frames and the chamber's telemetry up to the hold committed (the bench time does not
     move meanwhile; telemetry rows commit on the wall clock, later than the frames on a loaded machine)."""
-    from bench.storage.models import Telemetry
-
     marker = Path(str(hold) + ".held")
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -61,8 +59,6 @@ def _assert_continuous(db, rid: int, gap) -> None:
     """Across the outage the chamber's own ramp goes on (1 C/min: 2 C in 120 s, plus the air catching
     up with its set point), and the probes on the gyro, with their thermal lag, move less: no jump back
     to room temperature (23 C) or to a fresh chamber."""
-    from bench.storage.models import ProbeReadingRow, Telemetry
-
     with db.session() as s:
         pv = s.execute(select(Telemetry.t, Telemetry.chamber_pv).where(
             Telemetry.run_id == rid, Telemetry.device == "chamber").order_by(Telemetry.t)).all()
