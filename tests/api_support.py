@@ -7,7 +7,7 @@ import itertools
 import uuid
 from typing import Any
 
-from bench.clock import AcceleratedClock, LockstepClock
+from bench.clock import LockstepClock
 from bench.config import BenchConfig, TurntableConfig
 from bench.devices.orientation import EIGHT_POSITION_GEOMETRY
 from bench.engine import Devices, EngineConfig
@@ -37,11 +37,13 @@ def engine_config() -> EngineConfig:
 
 
 class DoublesBench:
-    """Device doubles sharing one thermal model on an accelerated clock (or ``clock``); ``factory``
-    opens a fresh bundle per run (as real drivers would be)."""
+    """Device doubles sharing one thermal model on ``clock``; ``factory`` opens a fresh bundle per run
+    (as real drivers would be).  Tests build them with ``lockstep``: on a clock that runs ahead of the
+    wall (an ``AcceleratedClock``) a loaded host falls behind the frames it must store and a run never
+    ends."""
 
-    def __init__(self, speed: float = 300.0, start_c: float = 30.0, clock=None) -> None:
-        self.clock = clock or AcceleratedClock(speed)
+    def __init__(self, clock, start_c: float = 30.0) -> None:
+        self.clock = clock
         self.thermal = Thermal(self.clock, start_c)
         self.opened = 0
 
@@ -50,7 +52,7 @@ class DoublesBench:
         """The doubles on a ``LockstepClock`` starting at ``T0``: bench time moves only when a run's engine
         sleeps (at most ``pace`` x wall; None: as fast as the host can), so ``hold_at`` can stop a run at
         a known bench instant whatever the load (``tests.service_support.hold_clock_at``)."""
-        return cls(start_c=start_c, clock=LockstepClock(T0, pace))
+        return cls(LockstepClock(T0, pace), start_c=start_c)
 
     def factory(self, config: BenchConfig) -> Devices:
         self.opened += 1

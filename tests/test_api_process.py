@@ -142,7 +142,7 @@ def _doubles_worker_main(bench: str, clock_json: str) -> None:
     from tests.api_support import DoublesBench, bench_config, engine_config
 
     logging.basicConfig(level=logging.INFO)
-    doubles = DoublesBench(clock=clock_from_json(json.loads(clock_json)))
+    doubles = DoublesBench(clock_from_json(json.loads(clock_json)))
     w = Worker(open_database(), bench, bench_config(bench), doubles.factory, doubles.clock,
                engine_config=engine_config(), heartbeat_s=0.2, stale_after_s=1.5, poll_s=0.05)
     signal.signal(signal.SIGTERM, lambda *_: w.stop())

@@ -40,7 +40,7 @@ def db(tmp_path):
 
 def test_api_and_worker_metrics_move_when_a_simulated_run_records(db):
     name = unique_bench()
-    worker, thread = start_worker(db, name, DoublesBench(speed=300.0))
+    worker, thread = start_worker(db, name, DoublesBench.lockstep())
     server, _ = serve_worker_metrics(worker, 0)
     c = TestClient(create_app(db, tokens=TOKENS, stale_after_s=1.5))
 
