@@ -40,6 +40,16 @@ def test_linear_ramp_rate_in_c_per_min(method):
     np.testing.assert_allclose(rate, 1.5, rtol=1e-9)
 
 
+@pytest.mark.parametrize("method", signal.RATE_METHODS)
+def test_rate_follows_a_curving_temperature_to_the_records_ends(method):
+    # a run that ends while the chamber still speeds up its cooling: within half a window of either
+    # end the rate is the quadratic's slope at the sample, not the last full window's slope held
+    t = np.arange(0.0, 3000.0)
+    temp = 30.0 - t * t / 120_000.0                           # dT/dt = -t/1000 C/min
+    rate = signal.temperature_rate(t, temp, 600.0, method=method)
+    np.testing.assert_allclose(rate, -t / 1000.0, atol=1e-9)
+
+
 def test_rate_method_must_be_known_and_time_comes_first():
     t = np.arange(100.0)
     with pytest.raises(ValueError, match="rate method 'diff' unknown"):

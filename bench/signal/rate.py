@@ -4,8 +4,9 @@ Two filters, each named wherever a result uses it (``definition["rate_method"]``
 
 * ``"centred_slope"`` (default; the linear models' ``rate_window_s`` terms, close-the-loop): the
   centred least-squares slope over ``window_s`` seconds (Savitzky-Golay first derivative, polyorder 1,
-  which equals polyorder 2 at the window centre), computed on the series linearly resampled to a
-  uniform grid at the median sample period; samples whose window is not covered by data (a gap longer
+  which equals polyorder 2 at the window centre; within half a window of the record's ends, polyorder
+  2's slope at the sample), computed on the series linearly resampled to a uniform grid at the median
+  sample period; samples whose window is not covered by data (a gap longer
   than ``window_s/2``) get NaN, as do samples outside the measured span.  Calibration-notes lesson 9.
 * ``"savgol2"`` (FOG and HRG models, seed 004: the rate "by differencing the 100-s smoothed
   temperature"): Savitzky-Golay order 2 over ``window_s`` per segment when the window spans >= 3
@@ -163,12 +164,17 @@ def _present_slope(t: np.ndarray, x: np.ndarray, at: np.ndarray, window_s: float
 
 class _SlopeSums:
     """Least-squares slope (per sample) over x[i-half .. i+half] for any ``half``, O(n) with cumulative
-    sums taken once; at the ends the slope of the first / last full window is used (= Savitzky-Golay
-    polyorder 1, deriv 1, mode "interp")."""
+    sums taken once.  Within ``half`` of an end, the derivative of the quadratic fitted to the first /
+    last full window, at the sample (= Savitzky-Golay polyorder 2, deriv 1, mode "interp"; at a window's
+    centre polyorder 1 and 2 give the same slope): the rate follows the temperature's curvature to the
+    record's end instead of holding the last full window's slope for half a window (measured: a relay
+    whose 600-s rate froze at -0.16 C/min over the last 300 s of a validation run still cooling at
+    -0.26 C/min missed its last switch; its size on that run came out at 0.76x the training size and
+    the true effect was turned away, the channel left at 11x the oracle's error)."""
 
     def __init__(self, x: np.ndarray) -> None:
         n = self.n = len(x)
-        xc = x - x.mean()                       # keep cumulative sums small
+        self.xc = xc = x - x.mean()             # keep cumulative sums small
         self.j = j = np.arange(n, dtype=np.float64) - n / 2.0
         self.c0 = np.concatenate([[0.0], np.cumsum(xc)])
         self.c1 = np.concatenate([[0.0], np.cumsum(j * xc)])
@@ -183,6 +189,10 @@ class _SlopeSums:
         den = half * (half + 1) * w / 3.0        # sum over k of k^2
         out = np.empty(n)
         out[half:n - half] = num / den
-        out[:half] = out[half]
-        out[n - half:] = out[n - half - 1]
+        k = np.arange(-half, half + 1, dtype=np.float64)
+        q = k * k - k @ k / w                   # the quadratic's column, orthogonal to 1 and k
+        for first, at in ((0, slice(0, half)), (n - w, slice(n - half, n))):
+            curvature = q @ self.xc[first:first + w] / (q @ q)
+            centre = out[first + half]
+            out[at] = centre + 2.0 * curvature * (np.arange(at.start, at.stop) - first - half)
         return out
