@@ -6,8 +6,8 @@ Two filters, each named wherever a result uses it (``definition["rate_method"]``
   centred least-squares slope over ``window_s`` seconds (Savitzky-Golay first derivative, polyorder 1,
   which equals polyorder 2 at the window centre; within half a window of the record's ends, polyorder
   2's slope at the sample), computed on the series linearly resampled to a uniform grid at the median
-  sample period; samples whose window is not covered by data (a gap longer
-  than ``window_s/2``) get NaN, as do samples outside the measured span.  Calibration-notes lesson 9.
+  sample period; samples whose window is not covered by data (a gap longer than ``window_s/2``) get
+  NaN, as do samples outside the measured span.  Calibration-notes lesson 9.
 * ``"savgol2"`` (FOG and HRG models, seed 004: the rate "by differencing the 100-s smoothed
   temperature"): Savitzky-Golay order 2 over ``window_s`` per segment when the window spans >= 3
   samples, else central differences (``np.gradient``); never NaN (a segment of one sample gets 0).
