@@ -163,6 +163,35 @@ def _white_plus_flicker(rng, n: int, white: float, flicker_adev: float) -> np.nd
     return rng.normal(0, white, n) + x
 
 
+@pytest.mark.parametrize("dt,corr_s", [(1.0, 3.0), (0.1, 1.0)])
+def test_a_sensor_filtered_below_its_output_rate_gets_the_floor_of_its_100_s_means(dt, corr_s):
+    # a gyro whose output is low-pass filtered (first order, time constant corr_s) and sampled faster
+    # than that: its Allan variance rises up to corr_s before it falls as white noise.  Read as flicker,
+    # that rise once made the floor 2.8x (1 s) and 3.6x (0.1 s) the std of the record's 100-s means
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(11)
+    n = int(20_000 / dt)
+    a = np.exp(-dt / corr_s)
+    ratios, corrs = [], []
+    for _ in range(6):
+        x = lfilter([1 - a], [1, -a], _white_plus_flicker(rng, n, 0.15 / np.sqrt(dt), 0.008))
+        model = fit_noise_model([(x, dt, np.arange(n) * dt)])
+        k = int(round(100 / dt))
+        ratios.append(np.std(x[: n // k * k].reshape(-1, k).mean(axis=1), ddof=1)
+                      / model.floor(n * dt)["noise_floor_dph"])
+        corrs.append(model.white_corr_s)
+    assert 0.85 < np.median(ratios) < 1.15
+    assert corr_s / 2 <= np.median(corrs) <= 2 * corr_s
+
+
+def test_white_noise_sampled_at_its_bandwidth_has_no_correlation_time():
+    rng = np.random.default_rng(12)
+    model = fit_noise_model([(_white_plus_flicker(rng, 20_000, 0.15, 0.008), 1.0)])
+    assert model.white_corr_s == 0.0
+    assert model.summary()["white_correlation_s"] == 0.0
+
+
 def test_floor_over_judged_blocks_keeps_the_span_of_a_gap_and_its_limit_holds_its_level():
     # two stretches of 1.7 h judged, 4 h apart: flicker over the span they cover, not over 120
     # consecutive blocks; the noise level fitted from the data each time, its limit exceeded about

@@ -46,6 +46,14 @@ def test_gyro_noise_has_the_ieee_allan_levels(arw, bi):
         assert abs(adev[1] / (0.664 * bi) - 1) < 0.35        # flicker floor, one realisation
 
 
+def test_the_output_filter_correlates_neighbouring_samples_and_keeps_the_100_s_level():
+    raw = ph.gyro_noise(200_000, np.random.default_rng(3), 0.005, 0.0, 0.0)
+    filtered = ph.gyro_noise(200_000, np.random.default_rng(3), 0.005, 0.0, 0.0, filter_s=4.0)
+    assert np.corrcoef(filtered[:-1], filtered[1:])[0, 1] == pytest.approx(np.exp(-1 / 4.0), abs=0.02)
+    std100 = [np.std(x.reshape(-1, 100).mean(axis=1)) for x in (raw, filtered)]
+    assert std100[1] == pytest.approx(std100[0], rel=0.06)
+
+
 def test_oracle_reaches_the_noise_floor_and_complete_models_need_nothing():
     case = make_case("effect_off_own_probe_gradient", 1)
     ch = next(iter(case.truth))

@@ -498,7 +498,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
                  "method": "Allan variance of the final residuals (train + in-range validation; the "
                            "training residual alone when the floor with both lies above both the upper end "
                            "of the training noise's own 90 %% interval and %.1fx the training-only floor: "
-                           "structure the model misses on the validation run is not noise) fitted with quantisation, white and flicker terms (tau^1 and tau^2 nuisance terms left "
+                           "structure the model misses on the validation run is not noise) fitted with quantisation, white (band-limited when the short taus show a correlation time) and flicker terms (tau^1 and tau^2 nuisance terms left "
                            "out of the floor) at taus <= %.0f s, weighted by each tau's degrees of freedom; "
                            "expected std of 100-s means over the in-range validation blocks at their "
                            "lags (gaps keep their length) plus the spread the training noise puts into the "

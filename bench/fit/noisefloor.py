@@ -9,6 +9,14 @@ up to ``tau_max``, relative weights by the number of terms) with the IEEE 952 po
                  + f tau^0   (flicker, bias instability)    +  k tau^1  (rate random walk)
                  + d tau^2   (slow structure / drift)
 
+A sensor filtered below its output rate (a gyro's internal low-pass, a moving average longer than
+the sample period) has correlated samples: its white noise is a first-order Gauss-Markov process of
+correlation time T whose Allan variance rises up to about T before it falls as w / tau, a rise the
+other terms would read as flicker (on 1-s samples of a 3-s filter the floor came out 2.8x the true
+std of 100-s means).  The white term is therefore w / tau (1 - (T / 2 tau)(3 - 4 e^(-tau/T) +
+e^(-2 tau/T))), T = 0 unless a T among the sample period times powers of sqrt(2) (up to
+``BAND_MAX_S``) lowers the fit's chi-square by more than ``BAND_CHI2_GAIN``.
+
 The last two terms are nuisance terms, NOT part of the floor: at the short taus used, slow structure
 left in the residual (a trend or a slow wave grows as tau^2 there, a wander as tau^1) would otherwise
 be read as noise; a genuine rate random walk is invisible at those taus anyway (IEEE 952 levels of
@@ -63,6 +71,13 @@ PIECE_TAUS = 8.0       # a stretch of L seconds gives Allan variances up to tau 
 INTERVAL = 0.90
 LIMIT_P = 0.01
 MIN_LEVEL_EDF = 2.0                  # the fitted noise level must have more degrees of freedom to set a limit
+# the white noise's correlation time (a sensor band-limited below its output rate) is searched from the
+# sample period up to BAND_MAX_S seconds and kept only when it lowers the Allan fit's chi-square by
+# more than BAND_CHI2_GAIN: a filter of one sample period gains 430-540 on 5.5 h of 1-s samples, while
+# residuals of white-noise gyros whose fitted effects leave fast jitter gained up to 70 with a
+# correlation time of 0.7-2 s and a quantisation term traded against it
+BAND_MAX_S = 20.0
+BAND_CHI2_GAIN = 100.0
 
 
 def _structure_ratio(k: np.ndarray, mu: float) -> np.ndarray:
@@ -119,9 +134,17 @@ class NoiseModel:
     adev: np.ndarray
     tau_max_s: float
     cov: np.ndarray | None = None      # covariance of the floor terms' h_mu (``MUS`` order) given the nuisance terms
+    # correlation time (s) of the white rate noise: a sensor filtered below its output rate (``band_limited``)
+    white_corr_s: float = 0.0
+
+    def term(self, mu: float, tau: float) -> float:
+        """One power law's Allan variance at ``tau``: h_mu tau^mu, the white term band-limited by
+        ``white_corr_s``."""
+        v = self.coef.get(mu, 0.0) * tau ** mu
+        return v * band_limited(tau, self.white_corr_s) if mu == -1.0 else v
 
     def allan_var(self, tau: float, mus=NOISE_MUS) -> float:
-        return float(sum(self.coef.get(mu, 0.0) * tau ** mu for mu in mus))
+        return float(sum(self.term(mu, tau) for mu in mus))
 
     def floor(self, record_s: float, block_s: float = BLOCK_S, mus: tuple[float, ...] = NOISE_MUS,
               spread: "CoefficientSpread | None" = None) -> dict[str, Any]:
@@ -131,13 +154,13 @@ class NoiseModel:
         noise put into the fitted coefficients is added, the degrees of freedom combined
         (Satterthwaite)."""
         m = max(2.0, np.floor(record_s / block_s))
-        parts = {mu: self.coef.get(mu, 0.0) * block_s ** mu * barnes_b1(m, mu) for mu in mus}
+        parts = {mu: self.term(mu, block_s) * barnes_b1(m, mu) for mu in mus}
         var = float(sum(parts.values()))
         if var <= 0:
             return {"noise_floor_dph": float("nan"), "interval_dph": [float("nan"), float("nan")], "edf": 0.0,
                     "blocks": int(m)}
-        allan_100 = sum(self.coef.get(mu, 0.0) * block_s ** mu for mu in mus)
-        edf = max(1.0, block_means_edf(int(m), {mu: self.coef.get(mu, 0.0) * block_s ** mu for mu in mus}))
+        allan_100 = self.allan_var(block_s, mus)
+        edf = max(1.0, block_means_edf(int(m), {mu: self.term(mu, block_s) for mu in mus}))
         noise_var = var
         if spread is not None and spread.variance > 0:
             var = noise_var + spread.variance
@@ -220,6 +243,7 @@ class NoiseModel:
                 "quantisation_dph_s": float(np.sqrt(max(h.get(-2.0, 0.0), 0.0))),
                 "rate_random_walk_dph_per_rt_s": float(np.sqrt(max(h.get(1.0, 0.0), 0.0))),
                 "structure_term_dph_per_s": float(np.sqrt(max(h.get(2.0, 0.0), 0.0))),
+                "white_correlation_s": float(self.white_corr_s),
                 "tau_max_s": float(self.tau_max_s)}
 
 
@@ -321,7 +345,7 @@ def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float 
     lags = np.abs(idx[:, None] - idx[None, :])
     per_lag = np.zeros(int(lags.max()) + 1 if lags.size else 0)
     for mu in mus:
-        avar = model.coef.get(mu, 0.0) * block_s ** mu
+        avar = model.term(mu, block_s)
         if avar > 0:
             per_lag -= avar * _structure_ratio(np.arange(len(per_lag)), mu)
     return per_lag[lags]
@@ -475,8 +499,10 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         acc[1] += k
         acc[2] += edf
 
+    pooled_dt: list[float] = []
     for item in residuals:
         x, dt = item[0], item[1]
+        pooled_dt.append(float(dt))
         t = item[2] if len(item) > 2 else None
         reach = 0.0
         for piece in contiguous_pieces(x, dt, t):
@@ -493,8 +519,63 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         raise ValueError("noise floor: the residual is too short for an Allan deviation")
     taus = np.array(sorted(pooled))
     avar = np.array([pooled[t][0] / pooled[t][1] for t in taus])
-    A0 = np.column_stack([taus ** mu for mu in MUS])
     edf_by_mu = np.maximum(np.array([pooled[t][2] for t in taus]), 1.0)
+    # the white term's correlation time: none, or the one (the sample period times a power of sqrt 2) that fits the
+    # short taus better by more than ``BAND_CHI2_GAIN`` (a sensor filtered below its output rate has an
+    # Allan variance that rises to its bandwidth before it falls as white noise; read as flicker, that
+    # rise multiplied the floor)
+    fits = [(0.0, *_fit_power_laws(taus, avar, edf_by_mu, 0.0))]
+    dt_min = float(min(pooled_dt)) if pooled_dt else float(taus[0])
+    for corr in dt_min * 2.0 ** (np.arange(0, 24) / 2.0):
+        if corr > min(BAND_MAX_S, taus[-1] / 8.0):
+            break
+        fits.append((float(corr), *_fit_power_laws(taus, avar, edf_by_mu, float(corr))))
+    best = min(fits, key=lambda f: f[3])
+    corr, sol, w, _ = best if best[3] < fits[0][3] - BAND_CHI2_GAIN else fits[0]
+    A0 = _power_law_columns(taus, corr)
+    # the floor terms' covariance given the nuisance terms (tau^1, tau^2: structure, never part of the
+    # floor) at their fitted values: a slow excess that the nuisance and flicker terms could share is
+    # structure, not uncertainty of the noise level (their joint covariance made the level unknowable,
+    # edf << 1, on a residual with a strong slow component, and any std then passed as noise)
+    active = sol > 0
+    floor_active = active & np.isin(np.array(MUS), NOISE_MUS)
+    cov = np.zeros((len(MUS), len(MUS)))
+    if floor_active.any():
+        Af = (A0 * w[:, None])[:, floor_active]
+        cov[np.ix_(floor_active, floor_active)] = np.linalg.pinv(Af.T @ Af)
+    coef = {mu: float(c) for mu, c in zip(MUS, sol)}
+    return NoiseModel(coef=coef, taus=taus, adev=np.sqrt(avar), tau_max_s=float(taus[-1]), cov=cov,
+                      white_corr_s=corr)
+
+
+def band_limited(tau, corr_s: float):
+    """Allan variance of white noise passed through a first-order filter of time constant ``corr_s``
+    (a first-order Gauss-Markov process), relative to unfiltered white noise of the same level at long
+    taus: 1 - (T / 2 tau) (3 - 4 e^(-tau/T) + e^(-2 tau/T)).  Below T it is about (tau / T)^2 / 3, so
+    the Allan variance rises as w tau / (3 T^2) there (the filtered samples are correlated); above T
+    it tends to 1; 1 for T = 0."""
+    tau = np.asarray(tau, dtype=np.float64)
+    if corr_s <= 0:
+        return np.ones_like(tau) if tau.ndim else 1.0
+    u = tau / corr_s
+    out = 1.0 - (3.0 - 4.0 * np.exp(-u) + np.exp(-2.0 * u)) / (2.0 * u)
+    return out if tau.ndim else float(out)
+
+
+def _power_law_columns(taus: np.ndarray, corr_s: float) -> np.ndarray:
+    cols = np.column_stack([taus ** mu for mu in MUS])
+    cols[:, MUS.index(-1.0)] *= band_limited(taus, corr_s)
+    return cols
+
+
+def _fit_power_laws(taus: np.ndarray, avar: np.ndarray, edf_by_mu: np.ndarray, corr_s: float):
+    """Non-negative weighted least squares of the power laws (white term band-limited by ``corr_s``)
+    to the Allan variances: each tau weighted by its precision edf / (2 sigma^4), sigma^2 the fitted
+    model's value (not the observed one: weighting by the inverse of the observed value favours the
+    taus that came out low and biases the flicker level down), edf mixed by each noise type's share
+    of the model at that tau; a few re-weighted passes.  Returns the coefficients, the final weights
+    and the weighted sum of squares (a chi-square under those precisions)."""
+    A0 = _power_law_columns(taus, corr_s)
     floor_v = np.maximum(avar, 1e-300)
     model_v = floor_v.copy()
     sol = np.zeros(len(MUS))
@@ -509,15 +590,5 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         sol_s, _ = nnls(A / scale, avar * w)
         sol = sol_s / scale
         model_v = np.maximum(A0 @ sol, 1e-3 * floor_v)
-    # the floor terms' covariance given the nuisance terms (tau^1, tau^2: structure, never part of the
-    # floor) at their fitted values: a slow excess that the nuisance and flicker terms could share is
-    # structure, not uncertainty of the noise level (their joint covariance made the level unknowable,
-    # edf << 1, on a residual with a strong slow component, and any std then passed as noise)
-    active = sol > 0
-    floor_active = active & np.isin(np.array(MUS), NOISE_MUS)
-    cov = np.zeros((len(MUS), len(MUS)))
-    if floor_active.any():
-        Af = (A0 * w[:, None])[:, floor_active]
-        cov[np.ix_(floor_active, floor_active)] = np.linalg.pinv(Af.T @ Af)
-    coef = {mu: float(c) for mu, c in zip(MUS, sol)}
-    return NoiseModel(coef=coef, taus=taus, adev=np.sqrt(avar), tau_max_s=float(taus[-1]), cov=cov)
+    chi2_w = float(np.sum(((avar - A0 @ sol) * w) ** 2))
+    return sol, w, chi2_w

@@ -274,6 +274,13 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     "effect_with_flicker": lambda s: _single(
         "effect_with_flicker", s, [str(np.random.default_rng(s).choice(PAIRABLE))],
         unit_noise={"arw": (0.002, 0.004), "bi": (0.01, 0.025)}),
+    # a sensor whose output filter is slower than its 1-s samples (correlated samples): a complete model
+    # and two effects
+    "complete_band_limited": lambda s: _single(
+        "complete_band_limited", s, [], verdicts=COMPLETE, unit_noise={"filter_s": (2.0, 8.0)}),
+    "band_limited_two_effects": lambda s: _single(
+        "band_limited_two_effects", s, lambda rng: [str(k) for k in rng.choice(PAIRABLE, 2, replace=False)],
+        ratio=(4.0, 8.0), unit_noise={"filter_s": (2.0, 8.0)}),
     "two_effects": lambda s: _single(
         "two_effects", s, lambda rng: [str(k) for k in rng.choice(PAIRABLE, 2, replace=False)],
         ratio=(4.0, 8.0)),

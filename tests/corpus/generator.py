@@ -114,7 +114,7 @@ class ChannelSpec:
 class Unit:
     net: dict[str, float]
     probe_rng_seeds: dict[str, int]
-    noise: dict[str, float]                            # arw, bi, rrw
+    noise: dict[str, float]                            # arw, bi, rrw (, filter_s: the output filter)
     bias_coef: dict[str, dict[str, float]]             # channel -> term -> deg/h per unit
     probe_nodes: dict[str, str]                        # probe -> node it is glued on
     channel_probes: dict[str, str]                     # channel -> the probe on its coil
@@ -327,7 +327,8 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
     channels = [s.channel for s in specs] if plan.table_rates_dps else ["x", "y", "z"]
     on = state.power > 0.5
     for ch in channels:
-        noise = ph.gyro_noise(n, rng, unit.noise["arw"], unit.noise["bi"], unit.noise["rrw"], DT)
+        noise = ph.gyro_noise(n, rng, unit.noise["arw"], unit.noise["bi"], unit.noise["rrw"], DT,
+                              unit.noise.get("filter_s", 0.0))
         floors[ch] = block_std100(noise)
         spec = tested.get(ch)
         declared = spec.declared if spec else [("pow", unit.channel_probes[ch], k) for k in (1, 2, 3)]

@@ -201,8 +201,10 @@ def read_probe(true_c: np.ndarray, glue_s: float, offset_c: float, noise_c: floa
 # ---------------------------------------------------------------------------------------- gyro noise
 
 def gyro_noise(n: int, rng: np.random.Generator, arw_dph_rthz: float, bias_instability_dph: float,
-               rrw_dph_rth: float, dt: float = 1.0) -> np.ndarray:
-    """Rate noise (deg/h): ARW N (deg/sqrt(h)), flicker with Allan floor 0.664 B, RRW K (deg/h/sqrt(h))."""
+               rrw_dph_rth: float, dt: float = 1.0, filter_s: float = 0.0) -> np.ndarray:
+    """Rate noise (deg/h): ARW N (deg/sqrt(h)), flicker with Allan floor 0.664 B, RRW K (deg/h/sqrt(h));
+    with ``filter_s`` > 0 the sensor's output filter (first order, that time constant in s, unit gain)
+    applied to the sum, so that samples closer than it are correlated."""
     white = rng.normal(0.0, arw_dph_rthz * 60.0 / np.sqrt(dt), n)
     flicker = np.zeros(n)
     if bias_instability_dph > 0:
@@ -214,7 +216,11 @@ def gyro_noise(n: int, rng: np.random.Generator, arw_dph_rthz: float, bias_insta
         # unit white noise has one-sided PSD 2 dt; shaped: h_-1 = 2 dt -> Allan variance 2 ln2 h_-1
         flicker *= 0.664 * bias_instability_dph / np.sqrt(2.0 * np.log(2.0) * 2.0 * dt)
     walk = np.cumsum(rng.normal(0.0, rrw_dph_rth / 60.0 * np.sqrt(dt), n)) if rrw_dph_rth > 0 else 0.0
-    return white + flicker + walk
+    total = white + flicker + walk
+    if filter_s > 0:
+        a = np.exp(-dt / filter_s)
+        total = lfilter([1.0 - a], [1.0, -a], total, zi=[a * total[0]])[0]
+    return total
 
 
 # ---------------------------------------------------------------------------------------- Earth rate
