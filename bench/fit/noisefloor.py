@@ -499,10 +499,8 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
         acc[1] += k
         acc[2] += edf
 
-    pooled_dt: list[float] = []
     for item in residuals:
         x, dt = item[0], item[1]
-        pooled_dt.append(float(dt))
         t = item[2] if len(item) > 2 else None
         reach = 0.0
         for piece in contiguous_pieces(x, dt, t):
@@ -525,7 +523,7 @@ def fit_noise_model(residuals: list[tuple], tau_max_s: float = TAU_MAX_S) -> Noi
     # Allan variance that rises to its bandwidth before it falls as white noise; read as flicker, that
     # rise multiplied the floor)
     fits = [(0.0, *_fit_power_laws(taus, avar, edf_by_mu, 0.0))]
-    dt_min = float(min(pooled_dt)) if pooled_dt else float(taus[0])
+    dt_min = min(float(item[1]) for item in residuals)
     for corr in dt_min * 2.0 ** (np.arange(0, 24) / 2.0):
         if corr > min(BAND_MAX_S, taus[-1] / 8.0):
             break
