@@ -5,12 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from bench.dataset import Dataset
 from bench.fit.channels import fit_channels
 from bench.fit.closeloop import MIN_TRAIN_S, close_loop, public
 from bench.fit.effects import duhem_state, relay_state
 from bench.fit.noisefloor import barnes_b1, fit_noise_model
 from bench.fit.validity import in_range_mask, range_aware_errors
-from tests.synth import TRAIN_PROFILE, make_run
+from tests.synth import TRAIN_PROFILE, VALIDATE_PROFILE, make_run
 
 # reaches -30 C: 10 C below the coldest the training run saw (-20 C)
 COLDER = [("hold", 1800), ("ramp", -30, 0.7), ("hold", 9000), ("ramp", 40, 1.0), ("hold", 3600),
@@ -133,3 +134,41 @@ def test_gradual_hysteresis_saturates_and_holds_while_the_relay_switches():
     # a short excursion only part-saturates the gradual memory; the relay is all or nothing
     assert 0.2 < duhem_state(rate, t, 50.0)[t.searchsorted(5000)] < 0.6
     assert set(np.unique(relay_state(rate, 0.05))) <= {-1.0, 0.0, 1.0}
+
+
+def test_a_probe_the_validation_run_lost_is_no_candidate_and_a_declared_one_is_a_clear_error():
+    # x's bias follows a gradient t1 - t3; the validation run's t3 failed (no column, or no reading).
+    # Before: with t4 dropped from a third-referee validation run (lag 6, where y's search chooses a
+    # lag of t4 on TRAIN) the run stopped with "error: t4", a bare KeyError, when the validation run
+    # was evaluated (measured).  An effect through a probe the validation run does not record cannot be
+    # confirmed there: it is not searched, and the report says so; a declared input it lacks is a
+    # clear error naming the column
+    train, _ = make_run(TRAIN_PROFILE, {"gradient": 0.3}, seed=5)
+    validate, _ = make_run(TRAIN_PROFILE, {"gradient": 0.3}, seed=6)
+    lost = Dataset({k: v for k, v in validate.columns.items() if k != "temp_t3"}, dict(validate.meta))
+    dead = validate.with_columns(temp_t3=np.full(len(validate), np.nan))
+    for val in (lost, dead):
+        ch = public(close_loop(train, val, "static", channels=["x"], bin_c=None))["channels"]["x"]
+        assert "t3" in ch["probes_not_searched"], ch["probes_not_searched"]
+        assert not any("t3" in str(e["params"]) for e in ch["effects_added"]), ch["effects_added"]
+        # (here a lag of t1 stands in for t1 - t3: both probes follow the chamber through a lag)
+        assert ch["after"]["validation_std100_dph"] < 0.1 * ch["before"]["validation_std100_dph"]
+    with pytest.raises(ValueError, match="channel 'x': the declared model needs temp_t3, which the validation data"):
+        close_loop(train, lost, "t1 + t1^2 + (t1-t3)", channels=["x"])
+
+
+def test_a_lagged_elements_state_at_the_validation_runs_start_is_estimated_there():
+    # the validation run's logging starts 30 min into a ramp: the element that lags t1 by 1500 s is then
+    # far from the probe's reading, where the lag starts.  Judged with that start the lag found on TRAIN
+    # was not kept and the channel stayed at 0.215 deg/h, 19x its floor (measured); with the decaying
+    # start offset estimated on that run (with and without the effect alike) it is kept and the error
+    # is at the floor
+    train, _ = make_run(TRAIN_PROFILE, {"thermal_lag": 1500.0}, seed=5)
+    full, _ = make_run([("hold", 1800), ("ramp", -10, 0.7)] + VALIDATE_PROFILE[2:], {"thermal_lag": 1500.0}, seed=6)
+    validate = full.select(full.time >= 3600.0)
+    ch = public(close_loop(train, validate, "static", channels=["x"], bin_c=None))["channels"]["x"]
+    lags = [e for e in ch["effects_added"] if e["kind"] == "thermal_lag"]
+    assert lags and lags[0]["params"]["probe"] == "t1", ch["effects_added"]
+    assert abs(lags[0]["start_offset_on_validation_dph"]) > 0.05, lags
+    assert ch["after"]["validation_std100_dph"] < 1.2 * ch["noise_floor_dph"], ch["findings"]
+    assert ch["after"]["validation_std100_dph"] < 0.1 * ch["before"]["validation_std100_dph"], ch["findings"]
