@@ -150,6 +150,7 @@ def test_a_probe_the_validation_run_lost_is_no_candidate_and_a_declared_one_is_a
     for val in (lost, dead):
         ch = public(close_loop(train, val, "static", channels=["x"], bin_c=None))["channels"]["x"]
         assert "t3" in ch["probes_not_searched"], ch["probes_not_searched"]
+        assert "Not searched: t3 (not recorded in the validation run" in ch["findings"], ch["findings"]
         assert not any("t3" in str(e["params"]) for e in ch["effects_added"]), ch["effects_added"]
         # (here a lag of t1 stands in for t1 - t3: both probes follow the chamber through a lag)
         assert ch["after"]["validation_std100_dph"] < 0.1 * ch["before"]["validation_std100_dph"]
@@ -170,5 +171,7 @@ def test_a_lagged_elements_state_at_the_validation_runs_start_is_estimated_there
     lags = [e for e in ch["effects_added"] if e["kind"] == "thermal_lag"]
     assert lags and lags[0]["params"]["probe"] == "t1", ch["effects_added"]
     assert abs(lags[0]["start_offset_on_validation_dph"]) > 0.05, lags
+    assert "Its lagged element starts the validation run" in ch["findings"], ch["findings"]
+    assert ch["probes_not_searched"] == {}
     assert ch["after"]["validation_std100_dph"] < 1.2 * ch["noise_floor_dph"], ch["findings"]
     assert ch["after"]["validation_std100_dph"] < 0.1 * ch["before"]["validation_std100_dph"], ch["findings"]

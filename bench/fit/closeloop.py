@@ -585,6 +585,9 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         },
         "search_steps": steps,
         "search_stop_std100_dph": stop,
+        # probes of the training run that were not candidates (``close_loop`` searches those both runs record)
+        "probes_not_searched": {p: "not recorded in the validation run: an effect through it could not be "
+                                   "confirmed there" for p in train.temp_names() if p not in ctx.probes},
     }
     report["findings"] = _findings(report)
     report["_residuals"] = {"before": (r_tr0, r_va0), "after": (r_tr, r_va)}
@@ -661,6 +664,9 @@ def _findings(r: dict[str, Any]) -> str:
                      f"input; diagnosis uses that part. Outside: " + "; ".join(parts) +
                      f". Deployed (inputs clipped) on the whole run: std100 {b['validation_all_std100_dph']:.4g} "
                      f"before, {a['validation_all_std100_dph']:.4g} after.")
+    if r["probes_not_searched"]:
+        lines.append(f"Not searched: {', '.join(r['probes_not_searched'])} (not recorded in the validation run, so "
+                     "an effect through it could not be confirmed there).")
     if not r["effects_added"] and not r["effects_not_generalised"]:
         lines.append("No candidate effect passed the training evidence (delta-BIC, HAC Wald, blocked "
                      "cross-validation); nothing was added.")
@@ -677,6 +683,11 @@ def _findings(r: dict[str, Any]) -> str:
                          f"{e['params'].get('start', 'neutral')}): the state a run begins in depends on the "
                          "unit's history before it, which nothing recorded tells, so it is the validation "
                          "run's initial condition, set to fit that run; every coefficient stays as trained.")
+        if "start_offset_on_validation_dph" in e:
+            lines.append(f"   Its lagged element starts the validation run {e['start_offset_on_validation_dph']:+.3g} "
+                         "deg/h away from where the probe's first reading puts it, decaying with its time constant: "
+                         "the element's state at that run's start is history nothing recorded, so it is estimated "
+                         "on that run; every coefficient stays as trained.")
         if e.get("ambiguous_with"):
             alts = "; ".join(f"{a['kind']} ({', '.join(f'{k}={v}' for k, v in a['params'].items())}, delta-BIC "
                              f"{a['bic_margin']:.1f} behind)" for a in e["ambiguous_with"])
@@ -858,15 +869,12 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                                  f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
             declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
             # an effect can only be confirmed on the validation run through probes it records
-            both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))
-            ctx = fx.Context(channel=ch, primary_probe=probe, probes=both,
+            recorded_in_both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))
+            ctx = fx.Context(channel=ch, primary_probe=probe, probes=recorded_in_both,
                              channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
                              own_shape=own_shape(design, y_tr, np.asarray(train[f"temp_{probe}"], dtype=float))
                              if f"temp_{probe}" in train else ())
             report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
-            report["channels"][ch]["probes_not_searched"] = {
-                p: "not recorded in the validation run: an effect through it could not be confirmed there"
-                for p in train.temp_names() if p not in both}
     return report
 
 

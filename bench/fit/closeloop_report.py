@@ -63,7 +63,9 @@ def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: D
                 ("#", "kind", "parameters", "terms", "delta-BIC", "HAC p", "cross-validated error", "validation std100 (deg/h)"),
                 [(i, e["kind"], ", ".join([f"{k}={v}" for k, v in e["params"].items()] +
                                           ([f"start on validation={e['start_on_validation']}"]
-                                           if e.get("start_on_validation") else [])), ", ".join(e["terms"]),
+                                           if e.get("start_on_validation") else []) +
+                                          ([f"start offset on validation={e['start_offset_on_validation_dph']:+.3g} deg/h"]
+                                           if "start_offset_on_validation_dph" in e else [])), ", ".join(e["terms"]),
                   e["evidence"]["delta_bic"], e["evidence"]["hac_wald_p"], cv_gain_text(e["evidence"]),
                   e["validation_std100_dph"])
                  for i, e in enumerate(r["effects_added"], 1)], caption="effects added (chosen on train, confirmed on validation)"))
