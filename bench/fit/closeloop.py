@@ -317,6 +317,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         return r_va - lag_starts(lags, r_va)[0]
 
     fits: dict[tuple, tuple] = {}
+    start_offsets: dict[tuple[str, ...], dict[str, float]] = {}    # the lags' start offsets ``fit`` estimated
 
     def fit(effs, start_fitted: bool = True):
         # the same subsets are fitted again and again (the backward pass, its skill test, the floors, the
@@ -330,7 +331,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             r_va = y_val - stack(veffs, design.validate, inputs_va) @ beta
             r_dep = y_val - stack(veffs, X_dep, inputs_va) @ beta
             if start_fitted:
-                start, _ = lag_starts(effs, r_va)
+                start, start_offsets[key[0]] = lag_starts(effs, r_va)
                 r_va, r_dep = r_va - start, r_dep - start
             got = fits[key] = (beta, y_train - Xt @ beta, r_va, r_dep)
         return got
@@ -518,9 +519,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     if step_found is not None:
         structure["train"]["bias_step"] = step_found
     added = _effect_entries(problem, kept_t, steps, fit, diag, t_va)
-    veffs = on_validation(kept_t, beta)
-    _, lag_offsets = lag_starts(kept_t, y_val - stack(veffs, design.validate, inputs_va) @ beta)
-    for entry, e, ve in zip(added, kept_t, veffs):
+    lag_offsets = start_offsets[tuple(e.label for e in kept_t)]       # estimated by fit(kept_t) above
+    for entry, e, ve in zip(added, kept_t, on_validation(kept_t, beta)):
         if ve is not e:
             entry["start_on_validation"] = fx.start_rule(ve)
         if e.label in lag_offsets:
