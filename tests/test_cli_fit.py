@@ -84,3 +84,22 @@ def test_close_loop_cli_writes_the_report(tmp_path):
     assert ch["verdict"] == "explained" and ch["effects_added"][0]["kind"] == "rate"
     page = (tmp_path / "cl.html").read_text()
     assert page.count("<img") >= 6 and "https://" not in page
+
+
+def test_close_loop_cli_leaves_out_a_channel_a_run_never_measured_and_names_it(tmp_path):
+    # gyro_y is a column of both runs but the validation run holds not one reading of it.  Before, y was
+    # called "no effect missing" on the training run alone with every validation number "-" (measured)
+    train, _ = make_run(TRAIN_PROFILE, {}, seed=1)
+    validate, _ = make_run(VALIDATE_PROFILE, {}, seed=2)
+    write_csv(train.with_columns(gyro_y=train["gyro_x"]), tmp_path / "train.csv")
+    write_csv(validate.with_columns(gyro_y=np.full(len(validate), np.nan)), tmp_path / "val.csv")
+    args = ["close-loop", str(tmp_path / "train.csv"), str(tmp_path / "val.csv"), "--model", "static",
+            "--json", str(tmp_path / "cl.json")]
+    res = runner.invoke(app, args)
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "cl.json").read_text())
+    assert list(doc["channels"]) == ["x"]
+    assert doc["channels_not_analysed"] == {"y": "column gyro_y missing from the validation data (no column, or not one reading)"}
+    assert "y: not analysed: column gyro_y missing from the validation data" in res.output
+    res = runner.invoke(app, args + ["--channel", "y"])       # asked for by name: a clear error
+    assert res.exit_code != 0 and "channel 'y': column gyro_y missing from the validation data" in res.output

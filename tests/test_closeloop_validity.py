@@ -156,6 +156,16 @@ def test_a_probe_the_validation_run_lost_is_no_candidate_and_a_declared_one_is_a
         assert ch["after"]["validation_std100_dph"] < 0.1 * ch["before"]["validation_std100_dph"]
     with pytest.raises(ValueError, match="channel 'x': the declared model needs temp_t3, which the validation data"):
         close_loop(train, lost, "t1 + t1^2 + (t1-t3)", channels=["x"])
+    # a validation run whose gyro channel has not one reading: before, "no effect missing" judged on the
+    # training run alone, every validation number "-" (measured)
+    dead_gyro = validate.with_columns(gyro_x=np.full(len(validate), np.nan))
+    with pytest.raises(ValueError, match=r"channel 'x': column gyro_x missing from the validation data \(no column, or not one"):
+        close_loop(train, dead_gyro, "static", channels=["x"])
+    # not asked for by name: the other channels are analysed and the report says which was not
+    both = public(close_loop(train.with_columns(gyro_y=train["gyro_x"]), dead_gyro.with_columns(gyro_y=validate["gyro_x"]),
+                             "static", bin_c=None))
+    assert list(both["channels"]) == ["y"], list(both["channels"])
+    assert both["channels_not_analysed"] == {"x": "column gyro_x missing from the validation data (no column, or not one reading)"}
 
 
 def test_a_lagged_elements_state_at_the_validation_runs_start_is_estimated_there():

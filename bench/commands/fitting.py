@@ -108,18 +108,23 @@ def close_loop_command(
     db_url: Optional[str] = db_option(),
 ) -> None:
     """Find what the declared model misses, add the effects that help on the held-out run, report."""
-    from bench.fit.closeloop import close_loop, public
+    from bench.fit.closeloop import close_loop, public, unmeasured_channel
     from bench.fit.closeloop_report import render_close_loop_report
 
     train_ds, val_ds = _load("training", train, db_url), _load("held-out", validate, db_url)
     report: dict[str, Any] | None = None
-    for ch in (list(channel) if channel else train_ds.gyro_channels()):
+    channels = list(channel) if channel else train_ds.gyro_channels()
+    # channels not asked for by name that a run never measured are left out (and named), as close_loop does
+    skipped = {} if channel else {ch: why for ch in channels if (why := unmeasured_channel(train_ds, val_ds, ch))}
+    for ch in [c for c in channels if c not in skipped] or channels:
         with step(f"close the loop on channel {ch}"):
             one = close_loop(train_ds, val_ds, model, channels=[ch], latitude_deg=latitude)
         if report is None:
             report = one
         else:
             report["channels"].update(one["channels"])
+    if skipped:
+        report["channels_not_analysed"] = skipped
     doc = clean_floats(public(report))
     doc["train_source"], doc["validation_source"] = train, validate
     write_json(json_out, doc)
@@ -134,3 +139,5 @@ def close_loop_command(
                  f"{quantity(r['after']['validation_std100_dph'], 'deg/h')} (noise floor "
                  f"{quantity(r.get('noise_floor_dph'), 'deg/h')}); added: "
                  f"{', '.join(e['kind'] for e in r['effects_added']) or 'nothing'}", json_out)
+    for ch, why in skipped.items():
+        _summary(f"{ch}: not analysed: {why}", json_out)

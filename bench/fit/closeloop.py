@@ -54,7 +54,7 @@ from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
 from bench.signal.lstsq import blas_threads
 
-__all__ = ["close_loop", "public", "lstsq", "std100", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
+__all__ = ["close_loop", "public", "lstsq", "std100", "unmeasured_channel", "MIN_TRAIN_S", "MIN_VALIDATE_S"]
 
 STOP_RATIO = 1.15
 # added effects must remove at least this share of the validation residual's variance above the floor
@@ -852,6 +852,7 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
     """Run the close-loop analysis for each channel; returns the JSON-ready report (residual arrays
     for plotting are kept under the private key ``_residuals`` of each channel)."""
     check_lengths(train, validate)
+    asked = bool(channels)
     channels = channels or train.gyro_channels()
     if latitude_deg is None and "latitude_deg" in train.meta:
         latitude_deg = float(train.meta["latitude_deg"])
@@ -863,10 +864,14 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                               "channels": {}}
     with blas_threads():     # thousands of small products and Cholesky factors: one BLAS thread
         for ch in channels:
-            missing = [f"gyro_{ch}" for ds in (train, validate) if f"gyro_{ch}" not in ds]
-            if missing:
-                raise ValueError(f"channel {ch!r}: column gyro_{ch} missing from the "
-                                 f"{'training' if f'gyro_{ch}' not in train else 'validation'} data")
+            why = unmeasured_channel(train, validate, ch)
+            if why:
+                # a run without one reading of the channel can neither choose nor confirm anything: an error
+                # when the channel was asked for (or is the only one), else the others are analysed
+                if asked or len(channels) == 1:
+                    raise ValueError(f"channel {ch!r}: {why}")
+                report.setdefault("channels_not_analysed", {})[ch] = why
+                continue
             declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
             # an effect can only be confirmed on the validation run through probes it records
             recorded_in_both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))
@@ -875,7 +880,18 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                              own_shape=own_shape(design, y_tr, np.asarray(train[f"temp_{probe}"], dtype=float))
                              if f"temp_{probe}" in train else ())
             report["channels"][ch] = close_loop_channel(design, y_tr, y_va, train, validate, ctx, model)
+    if not report["channels"]:
+        raise ValueError("no channel to analyse: " + "; ".join(f"{ch}: {why}" for ch, why in
+                                                               report["channels_not_analysed"].items()))
     return report
+
+
+def unmeasured_channel(train: Dataset, validate: Dataset, channel: str) -> str | None:
+    """Why ``channel`` cannot be analysed (a run without one reading of it), or None."""
+    for label, ds in (("training", train), ("validation", validate)):
+        if not _recorded(ds, f"gyro_{channel}"):
+            return f"column gyro_{channel} missing from the {label} data (no column, or not one reading)"
+    return None
 
 
 def _recorded(ds: Dataset, column: str) -> bool:
