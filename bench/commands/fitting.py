@@ -116,6 +116,7 @@ def close_loop_command(
     channels = list(channel) if channel else train_ds.gyro_channels()
     # channels not asked for by name that a run never measured are left out (and named), as close_loop does
     skipped = {} if channel else {ch: why for ch in channels if (why := unmeasured_channel(train_ds, val_ds, ch))}
+    # (when every channel was skipped, the first is tried anyway: close_loop raises the error naming it)
     for ch in [c for c in channels if c not in skipped] or channels:
         with step(f"close the loop on channel {ch}"):
             one = close_loop(train_ds, val_ds, model, channels=[ch], latitude_deg=latitude)

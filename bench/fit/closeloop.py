@@ -862,6 +862,8 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                                              "ambiguous_delta_bic": AMBIGUOUS_DBIC,
                                              "at_floor_ratio": AT_FLOOR_RATIO},
                               "channels": {}}
+    # an effect can only be confirmed on the validation run through probes it records
+    recorded_in_both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))
     with blas_threads():     # thousands of small products and Cholesky factors: one BLAS thread
         for ch in channels:
             why = unmeasured_channel(train, validate, ch)
@@ -873,8 +875,6 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                 report.setdefault("channels_not_analysed", {})[ch] = why
                 continue
             declared, design, y_tr, y_va, probe, window = _declared_design(model, train, validate, ch, latitude_deg, fit_opts)
-            # an effect can only be confirmed on the validation run through probes it records
-            recorded_in_both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))
             ctx = fx.Context(channel=ch, primary_probe=probe, probes=recorded_in_both,
                              channels=tuple(train.gyro_channels()), latitude_deg=latitude_deg, rate_window_s=window,
                              own_shape=own_shape(design, y_tr, np.asarray(train[f"temp_{probe}"], dtype=float))
