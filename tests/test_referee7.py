@@ -30,13 +30,6 @@ def _scored(case, tmp_path):
 
 
 @pytest.mark.parametrize("cls,seed,channels", [
-    # memories whose unit starts every run on one branch: the training run's start rule ("reversed")
-    # gives the opposite state on the validation run, so judged under that rule the true relay and
-    # Duhem memories "did not generalise" (2.08 against 1.99 deg/h without) or were "not the cause"
-    # (33 % of the excess removed); judged at the start that fits the validation run, as the error is
-    # reported, they are kept at the oracle's error (y of relay 2, a relay of the mount probe t4, still
-    # ends at 1.6x the oracle, partly explained)
-    ("hyst_relay", 2, ("x", "z")),
     ("hyst_gradual", 1, CHANNELS),
     # a complete model on epoch timestamps with jitter, a logger gap and missing probe readings
     ("complete_logger", 1, CHANNELS),
@@ -50,8 +43,16 @@ def test_cases_pass_the_seventh_referee(cls, seed, channels, tmp_path):
 
 
 def test_a_memory_is_judged_at_the_start_that_fits_the_validation_run(tmp_path):
+    # the unit starts every run on one branch: the training run's start rule ("reversed") gives the
+    # opposite state on the validation run, so judged under that rule the true relay and Duhem memories
+    # "did not generalise" (2.08 against 1.99 deg/h without) or were "not the cause" (33 % of the excess
+    # removed); judged at the start that fits the validation run, as the error is reported, they are
+    # kept at the oracle's error (y of relay 2, a relay of the mount probe t4, still ends at 1.6x the
+    # oracle, partly explained, and is not judged here)
     case = build_case("hyst_relay", 2)
     report, scores = _scored(case, tmp_path)
+    failures = {ch: s["why"] for ch, s in scores.items() if not s["ok"] and ch in ("x", "z")}
+    assert not failures, failures
     x = report["channels"]["x"]
     memory = [e for e in x["effects_added"] if e["kind"] == "hysteresis"]
     assert [e["params"]["probe"] for e in memory] == ["t1"], x["effects_added"]
