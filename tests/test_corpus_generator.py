@@ -74,6 +74,16 @@ def test_cases_are_reproducible_per_seed():
     assert a.truth.keys() == b.truth.keys()
 
 
+def test_a_lag_that_imitates_a_gradient_at_a_time_constant_between_grid_points_is_a_look_alike():
+    # the gradient t1-t2 of this unit is imitated by a lag of t1 within 0.02 noise floors at 19.5 min,
+    # not at 10, 30 or 90 min (0.87-1.24 floors): the look-alike search must try time constants finely
+    truth = make_case("effect_validation_colder", 1).truth["y"]
+    (gradient,) = truth.effects
+    assert (gradient.kind, set(gradient.probes)) == ("gradient", {"t1", "t2"})
+    (looks,) = truth.lookalikes
+    assert ["thermal_lag", ["t1"]] in [[k, list(p)] for k, p in looks]
+
+
 def _report(effects, verdict, residual):
     return {"effects_added": [{"kind": k, "params": p} for k, p in effects], "verdict": verdict,
             "_residuals": {"after": (None, residual)}}

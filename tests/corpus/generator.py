@@ -274,13 +274,17 @@ def _visible_std(signal: np.ndarray, declared: list[tuple], state: RunState, ok:
 
 
 ALTERNATIVE_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross")
-ALTERNATIVE_LAGS_S = (600.0, 1800.0, 5400.0)
+# a lag's time constant is a continuous parameter an analysis fits: any value from a minute to four
+# hours may imitate an effect.  The imitation is sharp in tau (a gradient t1-t2 imitated by a lag of
+# t1 within 0.02 floors at 19.5 min, 0.47 at 24.5 min, 0.87 at 12 min), so the grid's neighbours are
+# 1.1x apart; three values (10, 30, 90 min) had called that gradient distinct from every lag
+ALTERNATIVE_LAGS_S = tuple(float(t) for t in np.geomspace(60.0, 14400.0, 59))
 LOOKALIKE_FLOORS = 0.5      # naming it instead leaves under half a noise floor of error: no data tells them apart
 
 
 def alternatives(eff: Effect, state: RunState) -> list[tuple[str, tuple[str, ...], np.ndarray]]:
     """(kind, probes, signal) of the temperature-driven library effects an analysis could name
-    instead of ``eff`` (every kind on every probe or pair, a few lags), leaving out ``eff``'s own kind
+    instead of ``eff`` (every kind on every probe or pair, lags of 1 min to 4 h), leaving out ``eff``'s own kind
     on its own probes."""
     if eff.kind not in ALTERNATIVE_KINDS or not eff.explainable:
         return []
