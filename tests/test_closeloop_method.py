@@ -229,6 +229,29 @@ def test_two_candidates_the_training_run_cannot_tell_apart_are_named_as_an_ambig
     assert all(0 <= a["bic_margin"] < AMBIGUOUS_DBIC for a in ev["ambiguous_with"])
 
 
+def test_each_member_of_a_model_is_named_with_what_the_training_run_cannot_tell_from_it():
+    # two effects, one of them with a twin no data can tell from it: the twin is named beside that
+    # member in the final model, whether the search took the two in one step or one after the other
+    from bench.fit.closeloop_search import AMBIGUOUS_DBIC, lookalikes, search
+
+    rng = np.random.default_rng(11)
+    t = np.arange(5.0, 40_000.0, FINE_S)
+    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
+    fine = _inputs(t, temp)
+    lagged = fx.first_order_lag(temp, t, 900.0) - temp
+    twin = lambda name: fx.Family(name, (("probe", "t1"),), lambda x, _v: {name: lagged}, chosen_probe=False)
+    drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
+    hours = (t - t[0]) / 3600.0
+    y = 0.05 * lagged + 0.01 * hours + rng.normal(0, 0.02, len(t))
+    problem = _problem(fine, y, [twin("thermal_lag"), twin("gradient"), drift])
+    chosen, _ = search(problem)
+    assert sorted(e.kind for e in chosen) in (["gradient", "time_drift"], ["thermal_lag", "time_drift"])
+    named = {e.kind: [a["kind"] for a in alike] for e, alike in zip(chosen, lookalikes(problem, chosen))}
+    lag_kind = next(k for k in named if k != "time_drift")
+    assert named == {lag_kind: [{"thermal_lag", "gradient"}.difference({lag_kind}).pop()], "time_drift": []}
+    assert all(abs(a["bic_margin"]) < AMBIGUOUS_DBIC for alike in lookalikes(problem, chosen) for a in alike)
+
+
 def _drift_problem(y: np.ndarray, t: np.ndarray) -> SearchProblem:
     fine = _inputs(t, np.full(len(t), 20.0))
     drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})

@@ -47,7 +47,7 @@ import numpy as np
 from bench.fit import effects as fx
 from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, AT_FLOOR_RATIO, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
-                                        cv_gain_text, evidence_blocks, gates, search)
+                                        cv_gain_text, evidence_blocks, gates, lookalikes, search)
 from bench.fit.metrics import bias_stability, window_means, window_numbers
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
@@ -623,6 +623,8 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) ->
     step_ev.update({fam: s["evidence"] for s in steps if "evidence" in s for fam in s.get("added_families", [])})
     beta = fit(kept)[0]
     offset = problem.Xb.shape[1]
+    # candidates the training run could not tell from each one: named, never settled by validation
+    alike = lookalikes(problem, tuple(kept))
     for i, e in enumerate(kept):
         others = kept[:i] + kept[i + 1:]
         base = problem.score(others, with_cv=True)
@@ -632,15 +634,13 @@ def _effect_entries(problem: SearchProblem, kept, steps, fit, in_range, t_va) ->
         if first.get("runner_up") is not None:
             ev["runner_up"] = first["runner_up"]
             ev["bic_margin_to_runner_up"] = first.get("bic_margin_to_runner_up")
-        # candidates the training run could not tell from this one: named, never settled by validation
-        ambiguous = first.get("ambiguous_with", [])
         cols = list(e.columns(problem.fine).keys())
         start = offset + sum(len(k.columns(problem.fine)) for k in kept[:i])
         val_upto = std100(np.where(in_range, fit(kept[: i + 1])[2], np.nan), t_va)
         out.append({"kind": e.kind, "params": e.params, "terms": cols,
                     "coefficients": {nm: float(beta[start + j]) for j, nm in enumerate(cols)},
                     "evidence": ev, "validation_std100_dph": val_upto, "status": "generalised",
-                    "ambiguous_with": ambiguous})
+                    "ambiguous_with": alike[i]})
     return out
 
 

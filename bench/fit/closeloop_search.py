@@ -53,6 +53,7 @@ SCORED_SINGLES = 12
 SSR_MEMO = 200_000            # training SSRs kept per search problem (by the effects' labels)
 JOINT_SWEEPS = 2
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
+LOOKALIKE_CANDIDATES = 6      # families tried in a chosen effect's place when naming its look-alikes
 EXCHANGE_ROUNDS = 4
 SPAN_RTOL = 1e-6              # columns within a span to rounding (``SearchProblem.lies_within``)
 # two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:
@@ -727,9 +728,11 @@ def search(problem: SearchProblem, stop_std100: float | None = None,
         ev["runner_up"] = _describe(runner[0][0], runner[2]) if runner else None
         ev["bic_margin_to_runner_up"] = float(bic[id(runner)] - bic[id(pick)]) if runner else None
         picked = {m.family for m in move}
+        # single additions of this step alike in training BIC; a joint move's look-alikes are its members'
+        # (``lookalikes`` on the final model): a single addition's BIC says nothing about a pair's
         ev["ambiguous_with"] = [{**_describe(r[0][0], r[2]), "bic_margin": float(bic[id(r)] - bic[id(pick)])}
                                 for r in passing if r is not pick and r[0][0].family not in picked
-                                and bic[id(r)] - bic[id(pick)] < AMBIGUOUS_DBIC]
+                                and bic[id(r)] - bic[id(pick)] < AMBIGUOUS_DBIC] if len(move) == 1 else []
         chosen = problem.refit_jointly(chosen + move)
         steps.append({"added": [e.label for e in move], "added_families": [e.family.label for e in move],
                       "evidence": ev, "train_std100_before_step": left,
@@ -847,6 +850,36 @@ def exchange(problem: SearchProblem, effects: tuple[fx.Effect, ...],
                       "delta_bic": float(gain), "after_exchange": [e.label for e in trial]})
         current = trial
     return current
+
+
+def lookalikes(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> list[list[dict[str, Any]]]:
+    """Per chosen effect, the candidates the training run cannot tell from it in the final model: a
+    family not chosen (``LOOKALIKE_CANDIDATES`` of them, by training SSR on their grids) put in its place,
+    its parameter fitted with the others held as they stand, within ``AMBIGUOUS_DBIC`` of the final
+    model's training BIC (its effective n).  ``bic_margin`` is how far behind it is (negative: ahead, kept
+    out by the tie or exchange margins).  A gradient between two nodes the same air drives can follow a
+    lag or a rate of one of them this closely: the data name both, not one."""
+    if not effects:
+        return []
+    n_eff = problem.score(effects, with_cv=False).n_eff
+    here = problem.bic(effects, n_eff)
+    taken = {e.family for e in effects}
+    out = []
+    for i in range(len(effects)):
+        others = effects[:i] + effects[i + 1:]
+        coarse = sorted((problem.grid_ssr(f, others), k) for k, f in enumerate(problem.families) if f not in taken)
+        found = []
+        for _s, k in coarse[:LOOKALIKE_CANDIDATES]:
+            cand, cost = problem.best_value(problem.families[k], others)
+            if not np.isfinite(cost):
+                continue
+            margin = problem.bic(others[:i] + (cand,) + others[i:], n_eff) - here
+            if margin < AMBIGUOUS_DBIC:
+                found.append({"kind": cand.kind, "params": cand.params,
+                              "delta_bic": float(problem.bic(others, n_eff) - problem.bic(others + (cand,), n_eff)),
+                              "bic_margin": float(margin)})
+        out.append(sorted(found, key=lambda a: a["bic_margin"]))
+    return out
 
 
 def settle_rate_windows(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
