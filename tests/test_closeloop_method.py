@@ -584,3 +584,32 @@ def test_the_declared_models_part_in_the_own_probe_is_read_from_its_terms_and_it
     u = temp - 25.0
     again = sum(c * u ** j for j, c in enumerate(shape, 1))
     np.testing.assert_allclose(again - again.mean(), part - part.mean(), atol=1e-9 * np.ptp(part))
+
+
+def test_a_lags_unknown_start_is_a_column_on_the_run_fitted_and_zero_on_any_other():
+    # the element soaked at 45 C before logging began: it starts 25 C from its probe's first reading
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 36_000.0, 10.0)
+    temp = 20.0 + 15.0 * np.sin(t / 5000.0)
+    tau = 1500.0
+    a = np.exp(-10.0 / tau)
+    element = np.empty_like(temp)
+    element[0] = a * 45.0 + (1 - a) * temp[0]
+    for i in range(1, len(t)):
+        element[i] = a * element[i - 1] + (1 - a) * temp[i]
+    y = 0.1 * (element - temp) + rng.normal(0, 0.01, len(t))
+    fitted, other = _inputs(t, temp), _inputs(t, temp)
+    fitted.start_unknown = True
+    start = fx.lag_start(fitted, tau)
+    np.testing.assert_allclose(start, np.exp(-t / tau), rtol=1e-12)
+    assert not np.any(fx.lag_start(other, tau))
+    lag = fx.first_order_lag(temp, t, tau) - temp
+    one = np.ones(len(t))
+    with_start = np.linalg.lstsq(np.column_stack([one, lag, start]), y, rcond=None)[0]
+    without = np.linalg.lstsq(np.column_stack([one, lag]), y, rcond=None)[0]
+    assert abs(with_start[1] - 0.1) < 0.002 and abs(without[1] - 0.1) > 0.01
+    # the unsettled form is offered for a probe ramping when the run begins, not for one settled there
+    ramping = _inputs(t, 20.0 - 0.5 * t / 60.0)
+    assert fx.start_rate(ramping, "t1") == pytest.approx(-0.5) and 0.5 >= fx.UNSETTLED_START_C_PER_MIN
+    settled = _inputs(t, np.full(len(t), 20.0) + 0.001 * t / 60.0)
+    assert abs(fx.start_rate(settled, "t1")) < fx.UNSETTLED_START_C_PER_MIN

@@ -70,9 +70,6 @@ Z_SKILL = 2.326
 # follow by chance on both runs
 SLOW_NOISE_MUS = (-2.0, -1.0, 0.0, 1.0)
 MIN_DIAGNOSIS_BLOCKS = 12
-# a chosen lag's state at the validation run's start is estimated there when tau is at most this
-# fraction of the run's span (it has decayed to 5 % by the end; a slower one is a trend of that run)
-LAG_START_SPANS = 3.0
 MAX_SHAPE_DEGREE = 6          # the declared model's part in the own probe is a polynomial of at most this degree
 MIN_MEASURED_SHARE = 0.5      # an evidence block counts when its target was measured over this share of it
 MIN_TRAIN_S = 3000.0          # 30 blocks of 100 s: the declared model plus effects need that many points
@@ -195,7 +192,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     X_dep = design.validate_deployed if design.validate_deployed is not None else design.validate
 
     # TRAIN: choose the effects (search on block means)
-    inputs_tr, inputs_va = fx.build_inputs(train, ctx), fx.build_inputs(validate, ctx)
+    # the training run is where coefficients are fitted: its lags' unknown start states are columns there
+    inputs_tr, inputs_va = fx.build_inputs(train, ctx, start_unknown=True), fx.build_inputs(validate, ctx)
     fine = inputs_tr.averaged(FINE_S)
     # every regressor is averaged over the samples where the target was measured (no gap dilutes it)
     measured = np.isfinite(y_train)
@@ -306,7 +304,7 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
     span_va = float(t_va[-1] - t_va[0]) if len(t_va) > 1 else 0.0
 
     def starting_lags(effs) -> list[fx.Effect]:
-        return [e for e in effs if e.kind == "thermal_lag" and e.value and 0 < e.value <= span_va / LAG_START_SPANS]
+        return [e for e in effs if e.kind == "thermal_lag" and e.value and 0 < e.value <= span_va / fx.LAG_START_SPANS]
 
     def lag_starts(effs, r_va) -> tuple[np.ndarray, dict[str, float]]:
         # the start offsets of ``effs``' lags that best fit the residual ``r_va`` (judged rows), and their sizes
@@ -691,6 +689,10 @@ def _findings(r: dict[str, Any]) -> str:
                          f"{e['params'].get('start', 'neutral')}): the state a run begins in depends on the "
                          "unit's history before it, which nothing recorded tells, so it is the validation "
                          "run's initial condition, set to fit that run; every coefficient stays as trained.")
+        if e["params"].get("initial") == "unsettled":
+            lines.append("   Its lagged element began the training run away from where the probe's first reading puts it "
+                         "(the probe was ramping there): that offset, decaying with its time constant, is a term of its "
+                         "own on the training run and is not carried to the validation run.")
         if "start_offset_on_validation_dph" in e:
             lines.append(f"   Its lagged element starts the validation run {e['start_offset_on_validation_dph']:+.3g} "
                          "deg/h away from where the probe's first reading puts it, decaying with its time constant: "

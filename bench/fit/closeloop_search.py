@@ -53,7 +53,7 @@ SCORED_SINGLES = 12
 SSR_MEMO = 200_000            # training SSRs kept per search problem (by the effects' labels)
 JOINT_SWEEPS = 2
 EXCHANGE_CANDIDATES = 4       # families tried in an exchanged effect's place, by training SSR
-LOOKALIKE_CANDIDATES = 6      # families tried in a chosen effect's place when naming its look-alikes
+LOOKALIKE_CANDIDATES = 12     # families tried in a chosen effect's place when naming its look-alikes
 EXCHANGE_ROUNDS = 4
 SPAN_RTOL = 1e-6              # columns within a span to rounding (``SearchProblem.lies_within``)
 # two candidates whose training BIC differ by less than this are named as an ambiguity (Kass & Raftery:

@@ -11,7 +11,10 @@ and the signature each one explains (calibration-notes section 3), each on EVERY
                                 "polynomial"): the one column f(lag_tau(T)) - f(T), f the declared
                                 model's part in T as the training run fits it (``Context.own_shape``;
                                 a more particular form of the linear lag, taken over it only on
-                                strong evidence)
+                                strong evidence); on a probe still ramping when the training run
+                                begins, its "unsettled" form adds the element's start offset there,
+                                exp(-t / tau) (tau up to ``LAG_START_SPANS``), taken over the linear
+                                lag only on strong evidence too
 The declared model's own probe is the default: a family on another probe (or a pair) pays one more
 searched parameter in the BIC.
 ``gradient(a-b)``               a temperature difference between two probes
@@ -62,6 +65,21 @@ LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
 # follows the temperature history), not a time constant the data can tell: searched up to this many
 # times the training run's length
 LAG_MAX_RUNS = 2.0
+# a lagged element's state at a run's first row is history nothing recorded (the unit may have soaked
+# elsewhere, or logging began mid-ramp): it starts where the probe's first reading puts it, off by an
+# offset that decays as exp(-t / tau).  On the validation run it is estimated there (``closeloop``); on
+# the training run the lag's unsettled form carries it as one more column (``Inputs.start_unknown``).
+# Either is done for tau at most this fraction of the run's span (5 % left at its end): a slower
+# element's offset is a trend of the run, not told from one
+LAG_START_SPANS = 3.0
+# the unsettled form of a lag is offered for a probe that is still ramping when the training run begins
+# (its least-squares slope over the first ``START_RATE_WINDOW_S`` at least this, C/min): an element
+# behind a ramp is off by about tau dT/dt, and one that just left a soak elsewhere by more.  Runs that
+# begin settled (a soak drifts by hundredths of a C/min) give the lag no start to fit: offered there,
+# the start column fitted a warm-up-like transient of other effects (held-out two effects 43, a
+# gradient and a lag taken for one unsettled lag)
+UNSETTLED_START_C_PER_MIN = 0.2
+START_RATE_WINDOW_S = 600.0
 # the lag of another probe's temperature itself (not minus it) differs from that temperature by about
 # tau dT/dt: below three evidence blocks it is that probe's temperature (a gradient with the own
 # probe) plus a small rate, which those families name
@@ -106,6 +124,9 @@ class Inputs:
     # computed at the readings' own rate (``relay``) is the block mean of the source's
     source: "Inputs | None" = field(default=None, repr=False)
     block_s: float | None = None
+    # the run the coefficients are fitted on: its lags' start offsets are columns (``lag_start``); on any
+    # other run those columns are zero (its own start is estimated on it, or left out)
+    start_unknown: bool = False
 
     @property
     def dt(self) -> float:
@@ -198,7 +219,7 @@ class Inputs:
                       power_known=self.power_known,
                       up=None if self.up is None else np.column_stack([c[f"up{i}"] for i in range(3)]),
                       input_rate=c.get("w_in"), paths={k: c[f"P:{k}"] for k in (self.paths or {})},
-                      source=self, block_s=float(block_s))
+                      source=self, block_s=float(block_s), start_unknown=self.start_unknown)
 
 
 @dataclass(frozen=True)
@@ -670,8 +691,9 @@ def _varies(x: np.ndarray) -> bool:
     return float(np.ptp(v)) > 1e-9 * max(1.0, float(np.max(np.abs(v))))
 
 
-def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
-    """The inputs of every effect, at the run's own rate."""
+def build_inputs(ds: Dataset, ctx: Context, start_unknown: bool = False) -> Inputs:
+    """The inputs of every effect, at the run's own rate (``start_unknown``: the run the coefficients are
+    fitted on, ``Inputs.start_unknown``)."""
     t = np.asarray(ds.time, dtype=np.float64)
     temps = {p: np.asarray(ds[f"temp_{p}"], dtype=np.float64) for p in ctx.probes if f"temp_{p}" in ds}
     rates = {p: rate_c_per_min(v, t, ctx.rate_window_s) for p, v in temps.items()}
@@ -687,7 +709,26 @@ def build_inputs(ds: Dataset, ctx: Context) -> Inputs:
             w_in = w_in + np.nan_to_num(np.asarray(ds["table_rate_dps"], dtype=np.float64)) * 3600.0
     return Inputs(time=t, temps=temps, rates=rates, since_on=time_since_power_on(ds),
                   power_known="power" in ds, up=up, input_rate=w_in,
-                  paths={p: temperature_path(t, v) for p, v in temps.items()})
+                  paths={p: temperature_path(t, v) for p, v in temps.items()}, start_unknown=start_unknown)
+
+
+def start_rate(x: Inputs, probe: str) -> float:
+    """The probe's least-squares slope (C/min) over the run's first ``START_RATE_WINDOW_S`` (0 without
+    three readings there)."""
+    t, v = x.time, x.temps[probe]
+    ok = np.isfinite(v) & (t - t[0] <= START_RATE_WINDOW_S)
+    if ok.sum() < 3 or np.ptp(t[ok]) <= 0:
+        return 0.0
+    return float(np.polyfit(t[ok] - t[0], v[ok], 1)[0] * 60.0)
+
+
+def lag_start(x: Inputs, tau_s: float) -> np.ndarray:
+    """The column of a lagged element's unknown start state: exp(-(t - t0) / tau) on the run the
+    coefficients are fitted on (``Inputs.start_unknown``); zero on any other run."""
+    if not x.start_unknown:
+        return np.zeros(len(x.time))
+    tau = max(1.0, float(tau_s))
+    return x.own_rate(("lag start", round(tau, 3)), lambda s: np.exp(-(s.time - s.time[0]) / tau))
 
 
 # --------------------------------------------------------------------------------------------
@@ -702,6 +743,9 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     lag_limits = (LAG_LIMITS_S[0], max(LAG_LIMITS_S[0], min(LAG_LIMITS_S[1], LAG_MAX_RUNS * duration)))
     lag_taus = tuple(t for t in LAG_TAUS_S if t <= lag_limits[1]) or LAG_TAUS_S[:1]
+    ramping = {p for p in probes if abs(start_rate(inputs, p)) >= UNSETTLED_START_C_PER_MIN}
+    unsettled_limits = (lag_limits[0], min(lag_limits[1], duration / LAG_START_SPANS))
+    unsettled_taus = tuple(t for t in lag_taus if t <= unsettled_limits[1])
     for p in probes:
         def lag_linear(x: Inputs, tau, p=p):
             # the element's first-order lag behind the probe: lag_tau(T_p) - T_p
@@ -709,6 +753,20 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
         out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", lag_taus, chosen_probe=p != own,
                           limits=lag_limits))
+
+        def lag_unsettled(x: Inputs, tau, p=p):
+            # the same element away from the probe's first reading when the training run began (it had
+            # soaked elsewhere, or logging began mid-ramp): its start offset, decaying, is a column too
+            v = first_order_lag(x.temps[p], x.time, tau)
+            return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p], f"start(lag{tau:.0f}({p}))": lag_start(x, tau)}
+        # a richer form of the lag, taken over it only on strong evidence, for an element whose start
+        # offset decays within the run: a slower one's is a trend of the run, not a start (offered at any
+        # tau, a lag of another probe of 8.75 h with its start column had stood in for a rate of t2 on
+        # TRAIN and was not the cause on VALIDATE: fifth referee rate 1)
+        if p in ramping and unsettled_taus:
+            out.append(Family("thermal_lag", (("probe", p), ("initial", "unsettled")), lag_unsettled, "tau_s",
+                              unsettled_taus, chosen_probe=p != own, limits=unsettled_limits,
+                              nests=("thermal_lag", (("probe", p),))))
         if p != own:
             def lag_absolute(x: Inputs, tau, p=p):
                 # an element that follows another probe's node with a lag: its temperature lag_tau(T_p)
