@@ -82,10 +82,16 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     assert lags and all(f.bounds[0] == fx.LAG_TAUS_S[0] for f in lags)
     # ... nor beyond twice the record: slower, it is the temperature's running integral
     short = _inputs(t[t < 10_800], temp[t < 10_800])
-    capped = [f for f in fx.families(ctx, short) if f.kind == "thermal_lag"]
-    assert all(f.bounds[1] == pytest.approx(2.0 * (short.time[-1] - short.time[0])) for f in capped)
+    span = short.time[-1] - short.time[0]
+    settled = lambda f: dict(f.fixed).get("initial") != "unsettled"
+    capped = [f for f in fx.families(ctx, short) if f.kind == "thermal_lag" and settled(f)]
+    assert all(f.bounds[1] == pytest.approx(2.0 * span) for f in capped)
     assert all(max(f.grid) <= f.bounds[1] for f in capped) and 14400.0 in capped[0].grid
-    assert all(f.bounds[1] == fx.LAG_LIMITS_S[1] for f in lags)      # 11.1 h: the cap is not reached
+    assert all(f.bounds[1] == fx.LAG_LIMITS_S[1] for f in lags if settled(f))      # 11.1 h: the cap is not reached
+    # the unsettled form (this probe ramps at the run's start) only where its start offset decays in the run
+    unsettled = [f for f in fx.families(ctx, short) if f.kind == "thermal_lag" and not settled(f)]
+    assert unsettled and all(f.bounds[1] == pytest.approx(span / fx.LAG_START_SPANS) for f in unsettled)
+    assert all(max(f.grid) <= f.bounds[1] for f in unsettled)
     # another probe's temperature lagged as it is: from three evidence blocks up (faster, a gradient)
     two = fx.Context(channel="x", primary_probe="t1", probes=("t1", "t2"), channels=("x",), latitude_deg=None)
     other = fx.Inputs(time=t, temps={"t1": temp, "t2": temp + 0.5},
@@ -209,19 +215,22 @@ def test_html_effects_table_never_prints_nan_for_cross_validation():
     assert "nan" not in table and f"n/a ({CV_CONFINED})" in table
 
 
+def _twins_and_a_drift(seed: int, drift_per_hour: float) -> SearchProblem:
+    # a lag and a "gradient" with the same column (no data tells them apart) beside a time drift
+    rng = np.random.default_rng(seed)
+    t = np.arange(5.0, 40_000.0, FINE_S)
+    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
+    lagged = fx.first_order_lag(temp, t, 900.0) - temp
+    twin = lambda name: fx.Family(name, (("probe", "t1"),), lambda x, _v: {name: lagged}, chosen_probe=False)
+    drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
+    y = 0.05 * lagged + drift_per_hour * (t - t[0]) / 3600.0 + rng.normal(0, 0.02, len(t))
+    return _problem(_inputs(t, temp), y, [twin("thermal_lag"), twin("gradient"), drift])
+
+
 def test_two_candidates_the_training_run_cannot_tell_apart_are_named_as_an_ambiguity():
     from bench.fit.closeloop_search import AMBIGUOUS_DBIC, search
 
-    rng = np.random.default_rng(7)
-    t = np.arange(5.0, 40_000.0, FINE_S)
-    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
-    fine = _inputs(t, temp)
-    lagged = fx.first_order_lag(temp, t, 900.0) - temp
-    twin = lambda name: fx.Family(name, (("probe", "t1"),), lambda x, _v: {name: lagged}, chosen_probe=False)
-    other = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
-    y = 0.05 * lagged + rng.normal(0, 0.02, len(t))
-    problem = _problem(fine, y, [twin("thermal_lag"), twin("gradient"), other])
-    chosen, steps = search(problem)
+    chosen, steps = search(_twins_and_a_drift(7, 0.0))
     assert len(chosen) == 1
     ev = steps[0]["evidence"]
     names = {a["kind"] for a in ev["ambiguous_with"]}
@@ -234,16 +243,7 @@ def test_each_member_of_a_model_is_named_with_what_the_training_run_cannot_tell_
     # member in the final model, whether the search took the two in one step or one after the other
     from bench.fit.closeloop_search import AMBIGUOUS_DBIC, lookalikes, search
 
-    rng = np.random.default_rng(11)
-    t = np.arange(5.0, 40_000.0, FINE_S)
-    temp = 20.0 * np.sin(t / 4000.0) + 5.0 * np.sin(t / 1300.0)
-    fine = _inputs(t, temp)
-    lagged = fx.first_order_lag(temp, t, 900.0) - temp
-    twin = lambda name: fx.Family(name, (("probe", "t1"),), lambda x, _v: {name: lagged}, chosen_probe=False)
-    drift = fx.Family("time_drift", (), lambda x, _v: {"t_hours": (x.time - x.time[0]) / 3600.0})
-    hours = (t - t[0]) / 3600.0
-    y = 0.05 * lagged + 0.01 * hours + rng.normal(0, 0.02, len(t))
-    problem = _problem(fine, y, [twin("thermal_lag"), twin("gradient"), drift])
+    problem = _twins_and_a_drift(11, 0.01)
     chosen, _ = search(problem)
     assert sorted(e.kind for e in chosen) in (["gradient", "time_drift"], ["thermal_lag", "time_drift"])
     named = {e.kind: [a["kind"] for a in alike] for e, alike in zip(chosen, lookalikes(problem, chosen))}
