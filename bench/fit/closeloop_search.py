@@ -867,7 +867,10 @@ def lookalikes(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> list[l
     out = []
     for i in range(len(effects)):
         others = effects[:i] + effects[i + 1:]
-        coarse = sorted((problem.grid_ssr(f, others), k) for k, f in enumerate(problem.families) if f not in taken)
+        # a richer or simpler form of the same effect (``fx.Family.nests``) is that effect, not a look-alike
+        own = effects[i].family
+        coarse = sorted((problem.grid_ssr(f, others), k) for k, f in enumerate(problem.families)
+                        if f not in taken and not (f.contains(own) or own.contains(f)))
         found = []
         for _s, k in coarse[:LOOKALIKE_CANDIDATES]:
             cand, cost = problem.best_value(problem.families[k], others)
