@@ -871,16 +871,16 @@ def lookalikes(problem: SearchProblem, effects: tuple[fx.Effect, ...]) -> list[l
         own = effects[i].family
         coarse = sorted((problem.grid_ssr(f, others), k) for k, f in enumerate(problem.families)
                         if f not in taken and not (f.contains(own) or own.contains(f)))
+        without = problem.bic(others, n_eff)
         found = []
         for _s, k in coarse[:LOOKALIKE_CANDIDATES]:
             cand, cost = problem.best_value(problem.families[k], others)
             if not np.isfinite(cost):
                 continue
-            margin = problem.bic(others[:i] + (cand,) + others[i:], n_eff) - here
-            if margin < AMBIGUOUS_DBIC:
-                found.append({"kind": cand.kind, "params": cand.params,
-                              "delta_bic": float(problem.bic(others, n_eff) - problem.bic(others + (cand,), n_eff)),
-                              "bic_margin": float(margin)})
+            trial = problem.bic(others[:i] + (cand,) + others[i:], n_eff)
+            if trial - here < AMBIGUOUS_DBIC:
+                found.append({"kind": cand.kind, "params": cand.params, "delta_bic": float(without - trial),
+                              "bic_margin": float(trial - here)})
         out.append(sorted(found, key=lambda a: a["bic_margin"]))
     return out
 

@@ -754,11 +754,10 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
         out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", lag_taus, chosen_probe=p != own,
                           limits=lag_limits))
 
-        def lag_unsettled(x: Inputs, tau, p=p):
+        def lag_unsettled(x: Inputs, tau, p=p, linear=lag_linear):
             # the same element away from the probe's first reading when the training run began (it had
             # soaked elsewhere, or logging began mid-ramp): its start offset, decaying, is a column too
-            v = first_order_lag(x.temps[p], x.time, tau)
-            return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p], f"start(lag{tau:.0f}({p}))": lag_start(x, tau)}
+            return {**linear(x, tau), f"start(lag{tau:.0f}({p}))": lag_start(x, tau)}
         # a richer form of the lag, taken over it only on strong evidence, for an element whose start
         # offset decays within the run: a slower one's is a trend of the run, not a start (offered at any
         # tau, a lag of another probe of 8.75 h with its start column had stood in for a rate of t2 on
