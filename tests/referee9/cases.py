@@ -1,7 +1,8 @@
 """Referee 9 case generator: one unit per case, three channels (x, y, z) with their own probes plus
 structure probes, a TRAIN and a VALIDATE run, a declared model (named or formula) and the truth.
 
-build(cls, seed) is deterministic (numpy default_rng seeded from the class name and the seed).
+build(cls, seed) is deterministic (numpy default_rng seeded from the class name and the seed).  What
+each class does: the README's "Ninth close-the-loop referee" section.
 """
 from __future__ import annotations
 
@@ -25,24 +26,6 @@ CLASSES = [
     "unrecorded_supply",
 ]
 
-CLASS_DOC = {
-    "static_lag_cold": "named `static`; slow 0.5 C/min TRAIN with long soaks, faster VALIDATE 5-15 C colder "
-                       "than TRAIN; one channel misses a lag (tau 5-60 min) of the base-plate probe",
-    "dynamic_complete_flicker": "named `dynamic`; truth = k(tc-25) + p(tc-partner) + q dT/dt on every channel "
-                                "(complete), strong flicker noise",
-    "hrg_freq_gradient": "HRG unit with freq_<ch> columns following the resonator temperature; formula "
-                         "`tc + tc^2 + tc^3`; one channel misses a gradient between the two structure probes",
-    "multipos_gsens": "multi-position soaks (orientation column, latitude, Earth rate in the output); named "
-                      "`static`; one channel misses g-sensitivity, another a dT/dt of a structure probe",
-    "irregular_logging": "jittered timestamps, TRAIN 1 s, VALIDATE 5-s averages, empty temperature cells; formula "
-                         "`tc + tc^2 + tc^3`; one channel misses (T-T0) dT/dt of its probe, another (dT/dt)^2",
-    "warmup_power_drift": "power column with power-offs; formula `tc + tc^2 + tc^3 + dtc`; one channel misses "
-                          "a warm-up after power-on, another a time drift",
-    "short_validation": "1.5 h VALIDATE run; named `static`; one channel misses a lag of the mount probe, "
-                        "another a gradient own probe - base plate",
-    "unrecorded_supply": "named `static`; one channel depends on a drifting supply voltage no column records "
-                         "(unexplained_structure_remains); the others complete",
-}
 
 # my kind names -> product kind names (filled from the product's JSON vocabulary)
 PRODUCT_KIND = {
@@ -133,25 +116,24 @@ def in_range_blocks(case, ch):
     return ok
 
 
+def _per_sample(run, of_code):
+    """(n, 3) array of ``of_code(orientation code)`` per sample (``NUE`` throughout without an
+    orientation column), computed once per distinct code."""
+    if run.orientation is None:
+        return np.tile(of_code("NUE"), (len(run.t), 1))
+    codes, inv = np.unique(run.orientation, return_inverse=True)
+    return np.array([of_code(c) for c in codes])[inv]
+
+
 def earth(case, run):
     """Earth rate per channel (deg/h), per sample."""
-    n = len(run.t)
-    if run.orientation is None:
-        e = P.earth_rate_body("NUE", case.latitude)
-        return {c: np.full(n, e[i]) for i, c in enumerate(CHANNELS)}
-    codes, inv = np.unique(run.orientation, return_inverse=True)
-    tab = np.array([P.earth_rate_body(c, case.latitude) for c in codes])
-    return {c: tab[inv, i] for i, c in enumerate(CHANNELS)}
+    tab = _per_sample(run, lambda code: P.earth_rate_body(code, case.latitude))
+    return {c: tab[:, i] for i, c in enumerate(CHANNELS)}
 
 
 def gravity(run):
-    n = len(run.t)
-    if run.orientation is None:
-        g = P.gravity_body("NUE")
-        return np.tile(g, (n, 1))
-    codes, inv = np.unique(run.orientation, return_inverse=True)
-    tab = np.array([P.gravity_body(c) for c in codes])
-    return tab[inv]
+    """Specific force (g) along body x, y, z, per sample."""
+    return _per_sample(run, P.gravity_body)
 
 
 def time_on(run):
@@ -190,7 +172,7 @@ def effect_col(case, run, eff, window_s=120.0):
     if k == "warmup":
         return np.exp(-time_on(run) / pr["tau_s"])
     if k == "drift":
-        return (run.t - case.train.t[0]) / 3600.0 if run is case.train else (run.t - run.t[0]) / 3600.0
+        return (run.t - run.t[0]) / 3600.0
     if k == "gsens":
         return gravity(run)[:, pr["axis"]]
     if k == "supply":
@@ -418,7 +400,7 @@ def build(cls, seed):
 
     if declared == "dynamic":
         # the named model's gradient partner, as `bench fit dynamic` reports it for this probe set
-        partner = dynamic_partner(probes, struct)
+        partner = dynamic_partner(probes)
 
     # declared (true) part of the bias
     coef = {}
@@ -488,13 +470,10 @@ def build(cls, seed):
     return case
 
 
-def dynamic_partner(probes, struct):
-    # `bench fit dynamic` on these files reports gradient [tc, t4]? -- set from the probe run in score
-    return {c: DYNAMIC_PARTNER(probes[c], probes, struct) for c in CHANNELS}
-
-
-def DYNAMIC_PARTNER(own, probes, struct):
-    return "t2" if own == "t1" else "t1"
+def dynamic_partner(probes):
+    """The named `dynamic` model's gradient partner per channel, as `bench fit dynamic` reports it:
+    t1, or t2 for the channel whose own probe is t1."""
+    return {c: "t2" if probes[c] == "t1" else "t1" for c in CHANNELS}
 
 
 def size_effect(rng, case, c, e_tr, e_va, eff):
@@ -512,10 +491,8 @@ def size_effect(rng, case, c, e_tr, e_va, eff):
         s_noise = P.std100(run.t, np.where(valid, run.noise[c], np.nan), blocks)
         res.append((s_eff, s_noise))
     (etr, ntr), (eva, nva) = res
-    if eff["kind"] == "supply":
-        s = target * ntr / etr
-    else:
-        s = target * ntr / etr
+    s = target * ntr / etr
+    if eff["kind"] != "supply":      # a library effect: also 4-10x the noise on in-range VALIDATE
         if np.isfinite(eva) and eva * s < 4.0 * nva:
             s = 4.0 * nva / eva
         if etr * s > 12.0 * ntr and np.isfinite(eva) and eva * s > 4.0 * nva:

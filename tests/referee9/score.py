@@ -99,10 +99,7 @@ def _probe_list(e):
         if k in pr:
             v = pr[k]
             return sorted(v.split("-") if isinstance(v, str) else list(v))
-    for k in ("probe",):
-        if k in pr:
-            return [pr[k]]
-    return []
+    return [pr["probe"]] if "probe" in pr else []
 
 
 def _num(pr, *names, default=None):
