@@ -125,3 +125,14 @@ def test_written_case_reads_back_as_measured_data(tmp_path):
     assert np.array_equal(back["temp_t2"], case.train["temp_t2"])
     assert list(back["orientation"]) == list(case.train["orientation"])
     assert json.loads((tmp_path / "truth.json").read_text())["channels"] == json.loads(json.dumps(record["channels"]))
+
+
+def test_block_means_of_a_column_do_not_depend_on_the_columns_beside_it():
+    # the look-alike search fits block means assembled from parts; a design's must be its columns', bit for bit
+    from tests.corpus.generator import block_means100
+
+    rng = np.random.default_rng(5)
+    cols = [np.ones(7200), *(rng.normal(size=7200) * 10.0 ** k for k in range(4))]
+    whole = block_means100(cols)
+    parts = np.column_stack([block_means100(cols[:2]), block_means100(cols[2:4]), block_means100(cols[4:])])
+    assert np.array_equal(whole, parts)

@@ -258,19 +258,43 @@ def thermal_bias(channel: str, declared: list[tuple], unit: Unit, state: RunStat
     return b
 
 
-def _visible_std(signal: np.ndarray, declared: list[tuple], state: RunState, ok: np.ndarray,
-                 others: list[np.ndarray] = ()) -> float:
-    """Std of the 100-s means of ``signal`` left after a least-squares fit of the declared terms
-    (evaluated on the true node temperatures), an intercept and the ``others`` signals."""
-    X = np.column_stack([np.ones(len(signal)), declared_columns(declared, lambda p: state.temp(p) - 25.0, len(signal)),
-                         *others])
+def block_means100(columns: list[np.ndarray]) -> np.ndarray:
+    """(blocks, k): 100-s means of equal-length columns.  The sums run in the same order whatever k:
+    numpy sums a strided axis in sequence but a contiguous one pairwise, so a lone column is paired
+    with zeros (a design's block means are then those of its columns, bit for bit)."""
     per = int(100 / DT)
-    m = (len(signal) // per) * per
-    okb = ok[:m].reshape(-1, per).all(axis=1)
-    sb = signal[:m].reshape(-1, per).mean(axis=1)[okb]
-    Xb = X[:m].reshape(-1, per, X.shape[1]).mean(axis=1)[okb]
-    beta, *_ = np.linalg.lstsq(Xb, sb, rcond=None)
-    return float(np.std(sb - Xb @ beta))
+    m = (len(columns[0]) // per) * per
+    X = np.column_stack(list(columns) + ([np.zeros(len(columns[0]))] if len(columns) == 1 else []))
+    return X[:m].reshape(-1, per, X.shape[1]).mean(axis=1)[:, :len(columns)]
+
+
+class VisibleFit:
+    """Std of the 100-s means of a signal left after a least-squares fit of the declared terms
+    (evaluated on the true node temperatures), an intercept and other signals, over the blocks where
+    ``ok`` holds throughout.  The declared design's block means are computed once per declared model:
+    the look-alike search fits a signal against a few hundred alternatives on the same run."""
+
+    def __init__(self, state: RunState, ok: np.ndarray):
+        self.state, self.per = state, int(100 / DT)
+        m = (len(ok) // self.per) * self.per
+        self.okb = ok[:m].reshape(-1, self.per).all(axis=1)
+        self._declared: dict[tuple, np.ndarray] = {}
+
+    def _declared_blocks(self, declared: list[tuple]) -> np.ndarray:
+        key = tuple(declared)
+        if key not in self._declared:
+            n = len(self.state.time_s)
+            X = declared_columns(declared, lambda p: self.state.temp(p) - 25.0, n)
+            self._declared[key] = block_means100([np.ones(n), *X.T])
+        return self._declared[key]
+
+    def std(self, signal: np.ndarray, declared: list[tuple], others: list[np.ndarray] = ()) -> float:
+        m = (len(signal) // self.per) * self.per
+        sb = signal[:m].reshape(-1, self.per).mean(axis=1)[self.okb]
+        parts = [self._declared_blocks(declared)] + ([block_means100(list(others))] if len(others) else [])
+        Xb = np.column_stack(parts)[self.okb]
+        beta, *_ = np.linalg.lstsq(Xb, sb, rcond=None)
+        return float(np.std(sb - Xb @ beta))
 
 
 ALTERNATIVE_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross")
@@ -330,6 +354,7 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
     tested = {s.channel: s for s in specs}
     channels = [s.channel for s in specs] if plan.table_rates_dps else ["x", "y", "z"]
     on = state.power > 0.5
+    visible = VisibleFit(state, on)
     for ch in channels:
         noise = ph.gyro_noise(n, rng, unit.noise["arw"], unit.noise["bi"], unit.noise["rrw"], DT,
                               unit.noise.get("filter_s", 0.0))
@@ -342,15 +367,15 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
             sig = signals[i]
             key = (ch, i)
             if key not in unit.effect_coef:
-                size = _visible_std(sig, declared, state, on)
+                size = visible.std(sig, declared)
                 sign = 1.0 if rng.random() < 0.5 else -1.0
                 unit.effect_coef[key] = sign * ratio * floors[ch] / max(size, 1e-12)
-                own = _visible_std(sig, declared, state, on, [s for j, s in enumerate(signals) if j != i])
-                unit.effect_visibility[key] = own / max(_visible_std(sig, [], state, on), 1e-12)
+                own = visible.std(sig, declared, [s for j, s in enumerate(signals) if j != i])
+                unit.effect_visibility[key] = own / max(visible.std(sig, []), 1e-12)
                 others = [s for j, s in enumerate(signals) if j != i]
                 errors: dict[tuple[str, tuple[str, ...]], float] = {}
                 for kind, ps, alt in alternatives(eff, state):
-                    err = abs(unit.effect_coef[key]) * _visible_std(sig, declared, state, on, others + [alt])
+                    err = abs(unit.effect_coef[key]) * visible.std(sig, declared, others + [alt])
                     errors[(kind, ps)] = min(errors.get((kind, ps), np.inf), err / floors[ch])
                 unit.effect_distinctness[key] = min(errors.values(), default=float("inf"))
                 unit.effect_lookalikes[key] = sorted(k for k, e in errors.items() if e < LOOKALIKE_FLOORS)
