@@ -258,26 +258,29 @@ def thermal_bias(channel: str, declared: list[tuple], unit: Unit, state: RunStat
     return b
 
 
+PER_BLOCK = int(100 / DT)       # samples in a 100-s block
+
+
 def block_means100(columns: list[np.ndarray]) -> np.ndarray:
     """(blocks, k): 100-s means of equal-length columns.  The sums run in the same order whatever k:
     numpy sums a strided axis in sequence but a contiguous one pairwise, so a lone column is paired
     with zeros (a design's block means are then those of its columns, bit for bit)."""
-    per = int(100 / DT)
-    m = (len(columns[0]) // per) * per
+    m = (len(columns[0]) // PER_BLOCK) * PER_BLOCK
     X = np.column_stack(list(columns) + ([np.zeros(len(columns[0]))] if len(columns) == 1 else []))
-    return X[:m].reshape(-1, per, X.shape[1]).mean(axis=1)[:, :len(columns)]
+    return X[:m].reshape(-1, PER_BLOCK, X.shape[1]).mean(axis=1)[:, :len(columns)]
 
 
 class VisibleFit:
     """Std of the 100-s means of a signal left after a least-squares fit of the declared terms
-    (evaluated on the true node temperatures), an intercept and other signals, over the blocks where
-    ``ok`` holds throughout.  The declared design's block means are computed once per declared model:
-    the look-alike search fits a signal against a few hundred alternatives on the same run."""
+    (evaluated on the true node temperatures), an intercept and other signals (given by their
+    ``block_means100``), over the blocks where ``ok`` holds throughout.  The declared design's block
+    means are computed once per declared model: the look-alike search fits a signal against a few
+    hundred alternatives on the same run."""
 
     def __init__(self, state: RunState, ok: np.ndarray):
-        self.state, self.per = state, int(100 / DT)
-        m = (len(ok) // self.per) * self.per
-        self.okb = ok[:m].reshape(-1, self.per).all(axis=1)
+        self.state = state
+        m = (len(ok) // PER_BLOCK) * PER_BLOCK
+        self.okb = ok[:m].reshape(-1, PER_BLOCK).all(axis=1)
         self._declared: dict[tuple, np.ndarray] = {}
 
     def _declared_blocks(self, declared: list[tuple]) -> np.ndarray:
@@ -288,11 +291,10 @@ class VisibleFit:
             self._declared[key] = block_means100([np.ones(n), *X.T])
         return self._declared[key]
 
-    def std(self, signal: np.ndarray, declared: list[tuple], others: list[np.ndarray] = ()) -> float:
-        m = (len(signal) // self.per) * self.per
-        sb = signal[:m].reshape(-1, self.per).mean(axis=1)[self.okb]
-        parts = [self._declared_blocks(declared)] + ([block_means100(list(others))] if len(others) else [])
-        Xb = np.column_stack(parts)[self.okb]
+    def std(self, signal: np.ndarray, declared: list[tuple], other_blocks: list[np.ndarray] = ()) -> float:
+        m = (len(signal) // PER_BLOCK) * PER_BLOCK
+        sb = signal[:m].reshape(-1, PER_BLOCK).mean(axis=1)[self.okb]
+        Xb = np.column_stack([self._declared_blocks(declared), *other_blocks])[self.okb]
         beta, *_ = np.linalg.lstsq(Xb, sb, rcond=None)
         return float(np.std(sb - Xb @ beta))
 
@@ -334,9 +336,8 @@ def alternatives(eff: Effect, state: RunState) -> list[tuple[str, tuple[str, ...
 
 
 def block_std100(x: np.ndarray) -> float:
-    per = int(100 / DT)
-    m = (len(x) // per) * per
-    b = x[:m].reshape(-1, per)
+    m = (len(x) // PER_BLOCK) * PER_BLOCK
+    b = x[:m].reshape(-1, PER_BLOCK)
     b = b[np.all(np.isfinite(b), axis=1)].mean(axis=1)
     return float(np.std(b, ddof=1))
 
@@ -370,12 +371,12 @@ def make_run(plan: RunPlan, unit: Unit, specs: list[ChannelSpec], rng: np.random
                 size = visible.std(sig, declared)
                 sign = 1.0 if rng.random() < 0.5 else -1.0
                 unit.effect_coef[key] = sign * ratio * floors[ch] / max(size, 1e-12)
-                own = visible.std(sig, declared, [s for j, s in enumerate(signals) if j != i])
+                others = [block_means100([s]) for j, s in enumerate(signals) if j != i]
+                own = visible.std(sig, declared, others)
                 unit.effect_visibility[key] = own / max(visible.std(sig, []), 1e-12)
-                others = [s for j, s in enumerate(signals) if j != i]
                 errors: dict[tuple[str, tuple[str, ...]], float] = {}
                 for kind, ps, alt in alternatives(eff, state):
-                    err = abs(unit.effect_coef[key]) * visible.std(sig, declared, others + [alt])
+                    err = abs(unit.effect_coef[key]) * visible.std(sig, declared, others + [block_means100([alt])])
                     errors[(kind, ps)] = min(errors.get((kind, ps), np.inf), err / floors[ch])
                 unit.effect_distinctness[key] = min(errors.values(), default=float("inf"))
                 unit.effect_lookalikes[key] = sorted(k for k, e in errors.items() if e < LOOKALIKE_FLOORS)
