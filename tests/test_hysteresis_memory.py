@@ -261,3 +261,13 @@ def test_the_relay_and_play_memories_equal_their_step_by_step_definitions(seed):
             p0 = float(x[0]) - start * width / 2
             np.testing.assert_array_equal(fx._backlash(x, width / 2, p0), _play_one_step_at_a_time(x, width / 2, p0))
     assert len(fx.reversal_relay_state(np.zeros(0), 1.0, 1.0)) == 0 and len(fx._backlash(np.zeros(0), 1.0, 0.0)) == 0
+
+
+def test_whole_powers_match_numpys_power_to_the_last_bits_and_keep_the_sign():
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.normal(0.0, 10.0, 2000), [0.0, -0.0, np.nan, -2.5, 2.5]])
+    for j in range(1, 6):
+        got, ref = fx.whole_power(x, j), x ** j
+        np.testing.assert_array_max_ulp(got[np.isfinite(ref)], ref[np.isfinite(ref)], maxulp=2)
+        assert np.array_equal(np.signbit(got), np.signbit(ref)) and np.isnan(got[-3])
+    assert fx.whole_power(np.array([-2.5]), 3)[0] == -15.625 and fx.whole_power(np.array([-2.5]), 2)[0] == 6.25

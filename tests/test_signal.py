@@ -143,6 +143,33 @@ def test_block_means_never_cross_a_segment_boundary():
     assert len(short.time_s) == 2
 
 
+def test_block_plan_numbers_the_blocks_alike_with_times_in_order_or_not():
+    from bench.signal.segments import _runs_of
+
+    rng = np.random.default_rng(7)
+    for ids in (np.sort(rng.integers(0, 40, 500)), rng.integers(0, 9, 300), np.zeros(1, np.int64),
+                np.zeros(0, np.int64), np.repeat(np.arange(5), [3, 1, 4, 1, 5])):
+        want = np.unique(ids, return_inverse=True, return_counts=True)
+        for got, ref in zip(_runs_of(ids), want):
+            np.testing.assert_array_equal(got, ref)
+    # a time axis with a jump back: blocks still cover every sample once, means of the right samples
+    t = np.concatenate([np.arange(0.0, 300.0), np.arange(100.0, 200.0)])
+    res = signal.block_means(t, {"x": t}, 100.0)
+    np.testing.assert_allclose(res.columns["x"], [49.5, 149.5, 249.5])
+
+
+def test_orientation_codes_per_sample_one_position_or_several():
+    one = signal.earth_rate_body_per_sample(np.array(["", "ENU", ""], dtype=object), 45.0, default="ENU")
+    np.testing.assert_allclose(one, np.tile(signal.earth_rate_body("ENU", 45.0), (3, 1)))
+    codes = np.array(["NUE", "ENU", "", "NUE", "WSU"], dtype=object)
+    per = signal.earth_rate_body_per_sample(codes, 45.0, default="ENU")
+    for row, code in zip(per, ["NUE", "ENU", "ENU", "NUE", "WSU"]):
+        np.testing.assert_allclose(row, signal.earth_rate_body(code, 45.0))
+    axes = signal.orientation_axes_per_sample(codes)
+    assert axes.shape == (5, 3, 3)
+    np.testing.assert_allclose(axes[4], signal.orientation_axes("WSU"))
+
+
 def test_lstsq_drops_non_finite_rows_and_survives_bad_scaling():
     t = np.linspace(-40.0, 80.0, 500)
     x = np.column_stack([np.ones_like(t), t, t ** 2 * 1e3, t ** 3])
