@@ -72,7 +72,7 @@ class BlockPlan:
                 ids = np.arange(ts.size)
             else:
                 ids = np.floor((ts - ts[0]) / block_s).astype(np.int64)
-            uniq, inverse, counts = _runs_of(ids)
+            uniq, inverse, counts = np.unique(ids, return_inverse=True, return_counts=True)
             keep = counts >= min_fraction * np.median(counts)
             block_of[seg] = next_block + inverse
             kept_blocks.append(next_block + np.flatnonzero(keep))
@@ -109,18 +109,6 @@ class BlockPlan:
             s = np.bincount(self.ids_used, weights=np.where(ok, v, 0.0), minlength=self.n_blocks)
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(n > 0, s / np.maximum(n, 1), np.nan)[self.kept]
-
-
-def _runs_of(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``np.unique(ids, return_inverse=True, return_counts=True)``; without its sort when the ids do not
-    decrease (a segment's times rise): each run of equal ids is then one value (the sort took a tenth
-    of the close-the-loop search's block plans on a 10-h run at 1 s)."""
-    if ids.size == 0 or np.any(ids[1:] < ids[:-1]):
-        return np.unique(ids, return_inverse=True, return_counts=True)
-    new = np.concatenate([[True], ids[1:] != ids[:-1]])
-    starts = np.flatnonzero(new)
-    counts = np.diff(np.append(starts, ids.size))
-    return ids[starts], np.cumsum(new) - 1, counts
 
 
 def block_means(time_s: np.ndarray, columns: Mapping[str, np.ndarray], block_s: float,
