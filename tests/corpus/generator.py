@@ -261,13 +261,18 @@ def thermal_bias(channel: str, declared: list[tuple], unit: Unit, state: RunStat
 PER_BLOCK = int(100 / DT)       # samples in a 100-s block
 
 
+def whole_blocks(x: np.ndarray) -> np.ndarray:
+    """``x`` (samples first) as (blocks, PER_BLOCK, ...): its whole 100-s blocks, a ragged end left out."""
+    m = (len(x) // PER_BLOCK) * PER_BLOCK
+    return x[:m].reshape(-1, PER_BLOCK, *x.shape[1:])
+
+
 def block_means100(columns: list[np.ndarray]) -> np.ndarray:
     """(blocks, k): 100-s means of equal-length columns.  The sums run in the same order whatever k:
     numpy sums a strided axis in sequence but a contiguous one pairwise, so a lone column is paired
     with zeros (a design's block means are then those of its columns, bit for bit)."""
-    m = (len(columns[0]) // PER_BLOCK) * PER_BLOCK
     X = np.column_stack(list(columns) + ([np.zeros(len(columns[0]))] if len(columns) == 1 else []))
-    return X[:m].reshape(-1, PER_BLOCK, X.shape[1]).mean(axis=1)[:, :len(columns)]
+    return whole_blocks(X).mean(axis=1)[:, :len(columns)]
 
 
 class VisibleFit:
@@ -279,8 +284,7 @@ class VisibleFit:
 
     def __init__(self, state: RunState, ok: np.ndarray):
         self.state = state
-        m = (len(ok) // PER_BLOCK) * PER_BLOCK
-        self.okb = ok[:m].reshape(-1, PER_BLOCK).all(axis=1)
+        self.okb = whole_blocks(ok).all(axis=1)
         self._declared: dict[tuple, np.ndarray] = {}
 
     def _declared_blocks(self, declared: list[tuple]) -> np.ndarray:
@@ -292,8 +296,7 @@ class VisibleFit:
         return self._declared[key]
 
     def std(self, signal: np.ndarray, declared: list[tuple], other_blocks: list[np.ndarray] = ()) -> float:
-        m = (len(signal) // PER_BLOCK) * PER_BLOCK
-        sb = signal[:m].reshape(-1, PER_BLOCK).mean(axis=1)[self.okb]
+        sb = whole_blocks(signal).mean(axis=1)[self.okb]
         Xb = np.column_stack([self._declared_blocks(declared), *other_blocks])[self.okb]
         beta, *_ = np.linalg.lstsq(Xb, sb, rcond=None)
         return float(np.std(sb - Xb @ beta))
@@ -336,8 +339,7 @@ def alternatives(eff: Effect, state: RunState) -> list[tuple[str, tuple[str, ...
 
 
 def block_std100(x: np.ndarray) -> float:
-    m = (len(x) // PER_BLOCK) * PER_BLOCK
-    b = x[:m].reshape(-1, PER_BLOCK)
+    b = whole_blocks(x)
     b = b[np.all(np.isfinite(b), axis=1)].mean(axis=1)
     return float(np.std(b, ddof=1))
 
