@@ -7,24 +7,17 @@ import numpy as np
 
 from bench.fit.metrics import window_means
 from bench.signal import ljung_box
-from tests.test_closeloop_periodic import _flicker
+from tests.test_closeloop_periodic import _flicker, false_alarm_rates
 from tests.test_closeloop_periodic import judged_against_own_noise_model as _judge
 
 
 def test_flicker_noise_alone_is_white_under_its_own_noise_model():
     # white + strong flicker: the plain Ljung-Box of the 100-s means rejects far more often than its
     # 1 % level; whitened by the fitted noise model's covariance it does not
-    rng = np.random.default_rng(11)
-    n = 20_000
-    t = np.arange(float(n))
-    whitened, plain = [], []
-    for _ in range(60):
-        x = rng.normal(0, 0.1, n) + 0.02 * _flicker(rng, n)
-        whitened.append("whiteness" in _judge(x, t)["failed_tests"])
-        means = window_means(t, x, 100.0)
-        plain.append(ljung_box(means, 10)[1] < 0.01)
-    assert np.mean(whitened) <= 0.05, np.mean(whitened)
-    assert np.mean(plain) > 3 * max(np.mean(whitened), 0.05), (np.mean(plain), np.mean(whitened))
+    whitened, plain = false_alarm_rates(
+        11, "whiteness", lambda x, t, st: ljung_box(window_means(t, x, 100.0), 10)[1] < 0.01)
+    assert whitened <= 0.05, whitened
+    assert plain > 3 * max(whitened, 0.05), (plain, whitened)
 
 
 def test_slow_structure_the_floor_accepts_is_not_white():

@@ -34,7 +34,7 @@ Which decision uses which run:
    helped but structure remains or one did not generalise), ``no_effect_missing`` (nothing added and
    at the floor), ``unexplained_structure_remains`` (nothing added helps and the error is above the
    floor); the structure left is described (whiteness; a periodic component only when significant
-   against the noise model, with >= 2 periods in the span and better than a cubic in time; trend).  The whole validation run with the model as deployed (inputs clipped) is reported too.
+   against the noise model, with >= 2 periods in the span and better than a cubic in time; a trend beyond both its HAC variance and the noise model's).  The whole validation run with the model as deployed (inputs clipped) is reported too.
 """
 from __future__ import annotations
 
@@ -135,14 +135,29 @@ def describe_structure(residual: np.ndarray, time_s: np.ndarray, noise_floor: fl
         null_cov = (noise_floor ** 2 if noise_floor > 0 else float(np.var(means))) * np.eye(n)
     out["ljung_box_p"] = whitened_ljung_box(means, null_cov, min(10, n // 5))
     out.update(periodic_component(means, index, null_cov, BLOCK_S))
-    tt_h = np.arange(n) * 100.0 / 3600.0
-    res = ols_hac(np.column_stack([np.ones(n), tt_h]), means)
-    out["trend_dph_per_h"] = float(res.params[1])
-    out["trend_p"] = float(res.pvalues[1])
+    out.update(linear_trend(means, index, null_cov))
     out["failed_tests"] = [name for name, key in (("whiteness", "ljung_box_p"), ("periodic", "peak_p"),
                                                   ("trend", "trend_p")) if out.get(key, 1.0) < TEST_P
                            and (name != "periodic" or out.get("better_than_cubic", False))]
     return out
+
+
+def linear_trend(means: np.ndarray, index: np.ndarray, null_cov: np.ndarray) -> dict[str, float]:
+    """The least-squares slope of block means against their time (a left-out stretch keeps its length)
+    and its two-sided p-value.  The slope's variance is the larger of two: Newey-West's (HAC: the
+    residual's own short-range correlation) and the one the noise model puts into that slope
+    (``null_cov``: flicker noise wanders, and over a record of hours it makes slopes that a HAC with a few
+    lags reads as significant).  A trend is claimed only beyond both."""
+    from scipy.stats import norm
+
+    tt_h = np.asarray(index, dtype=np.float64) * BLOCK_S / 3600.0
+    X = np.column_stack([np.ones(len(means)), tt_h])
+    res = ols_hac(X, means)
+    A = np.linalg.pinv(X)
+    var = max(float(res.cov[1, 1]), float(A[1] @ null_cov @ A[1]))
+    slope = float(res.params[1])
+    p = float(2.0 * norm.sf(abs(slope) / np.sqrt(var))) if var > 0 else (1.0 if slope == 0 else 0.0)
+    return {"trend_dph_per_h": slope, "trend_p": p}
 
 
 def whitened_ljung_box(means: np.ndarray, cov: np.ndarray, lags: int) -> float:
@@ -745,6 +760,9 @@ def _findings(r: dict[str, Any]) -> str:
             parts.append(f"a trend of {st['trend_dph_per_h']:.3g} deg/h per hour")
         if "whiteness" in st.get("failed_tests", []):
             parts.append(f"100-s means correlated beyond the noise model (Ljung-Box p {st['ljung_box_p']:.2g})")
+        if verdict == "partly_explained" and any(e["status"] == "did not generalise" for e in r["effects_not_generalised"]):
+            parts.append("effects chosen on the training run did not generalise (above), so what the training "
+                         "residual held is not accounted for")
         lines.append(("Structure remains that no candidate explains" if verdict == "unexplained_structure_remains"
                       else "The added effects helped but the channel is not fully explained") +
                      (": " + "; ".join(parts) if parts else "") +

@@ -768,6 +768,18 @@ def _joint_moves(problem: SearchProblem, chosen: tuple[fx.Effect, ...], base: Sc
                     for j in range(len(chosen), len(chosen) + size)]
             ev["each_hac_wald_p"] = each
             ev["passed"] = max(each) < P_MAX
+        if ev["passed"] and problem.noise_for is not None:
+            # and each its own GLS F test, the others in, under the noise model of the whole move's
+            # residual (as its HAC Wald test is judged on that residual), at a single addition's level:
+            # a time drift taken beside a strong effect can be a wander of flicker noise that HAC, with
+            # its few lags, reads as significant
+            full = chosen + move
+            each_gls = []
+            for j in range(size):
+                without = chosen + move[:j] + move[j + 1:]
+                each_gls.append(problem.gls_p(full, problem.design(without), problem.design(without + (move[j],))))
+            ev["each_gls_f_p"] = each_gls
+            ev["passed"] = max(each_gls) < P_MAX / max(1, len(problem.families))
         out.append((move, new, ev))
     return out
 
