@@ -22,7 +22,6 @@ def test_no_time_drift_is_taken_beside_a_rate_for_the_training_runs_flicker():
     assert all(max(ev["each_gls_f_p"]) < 1e-3 for ev in pairs), pairs
 
 
-
 def test_a_true_time_drift_beside_a_memory_is_still_taken():
     # the fourth referee's two effects, seed 12: y holds a play memory of t2 and a time drift, x and z
     # nothing; each member's test is made with its own columns last (the F test's nesting), so the

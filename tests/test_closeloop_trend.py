@@ -49,7 +49,6 @@ def test_a_left_out_stretch_keeps_its_length_on_the_time_axis():
     assert st["trend_p"] < 1e-6, st
 
 
-
 def _report(verdict: str, dropped: list[dict], failed: list[str]) -> dict:
     errors = {"validation_std100_dph": 0.0161, "validation_coverage": 1.0, "validation_all_std100_dph": 0.0161}
     return {"declared_model": "t1 + t1^2 + t1^3", "before": {**errors, "validation_std100_dph": 0.0926},
