@@ -129,7 +129,8 @@ def fit_job(db: Database, request: dict[str, Any]) -> Outcome:
         stored.append(item)
     page = render_fit_report(results, train, validate, predict=predict,
                              title=f"{gyro_id}: {results[0].model} on runs {run_ids}")
-    return Outcome(result={"gyro_id": gyro_id, "model": results[0].model}, report_html=page, gyro_id=gyro_id,
+    return Outcome(result={"gyro_id": gyro_id, "model": results[0].model, "glitches_removed": doc["glitches_removed"]},
+                   report_html=page, gyro_id=gyro_id,
                    fits=stored, accept=bool(request.get("accept")), run_ids=run_ids)
 
 

@@ -60,12 +60,12 @@ def fit_command(
     opts: dict[str, Any] = {}
     if latitude is not None:
         opts["latitude_deg"] = latitude
-    doc: dict[str, Any] = {"model": model, "channels": {}}
+    doc: dict[str, Any] = {"model": model, "glitches_removed": {}, "channels": {}}
     results = []
     for ch in channels:
         with step(f"fitting {model} on channel {ch}"):
             one, res = fit_channels(model, train_ds, val_ds, [ch], opts)
-        doc["model"] = one["model"]
+        doc["model"], doc["glitches_removed"] = one["model"], one["glitches_removed"]
         doc["channels"].update(one["channels"])
         results += res
     doc = jsonable(doc)
@@ -94,6 +94,7 @@ def fit_command(
         if "max_abs_error_c" in entry:
             line += f"; max |error| {quantity(entry['max_abs_error_c'], '°C')}"
         _summary(line, json_out)
+    _glitch_summary(doc.get("glitches_removed") or {}, json_out)
 
 
 @guarded
@@ -142,3 +143,12 @@ def close_loop_command(
                  f"{', '.join(e['kind'] for e in r['effects_added']) or 'nothing'}", json_out)
     for ch, why in skipped.items():
         _summary(f"{ch}: not analysed: {why}", json_out)
+    _glitch_summary(doc.get("glitches_removed") or {}, json_out)
+
+
+def _glitch_summary(removed: dict[str, dict[str, Any]], json_out: str) -> None:
+    """One line naming the isolated glitches set missing before the analysis, when there were any."""
+    parts = [f"{run} {col} {info['samples']} (first at t = {info['time_s'][0]:g} s)"
+             for run, cols in removed.items() for col, info in cols.items()]
+    if parts:
+        _summary("glitches set missing (isolated readings far off the signal's course): " + "; ".join(parts), json_out)

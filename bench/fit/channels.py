@@ -9,6 +9,7 @@ import numpy as np
 from bench.fit.base import Dataset, FitResult
 from bench.fit.catalog import fit_model, predict, target_of
 from bench.fit.metrics import bias_stability
+from bench.fit.prep import screen_glitches
 from bench.fit.validity import range_aware_errors, result_in_range
 from bench.jsonsafe import jsonable
 
@@ -34,7 +35,12 @@ def validation_errors(result: FitResult, data: Dataset, values: np.ndarray, targ
 def fit_channels(model: str, train: Dataset, validate: Dataset | None, channels: list[str],
                  opts: dict[str, Any]) -> tuple[dict, list[FitResult]]:
     """Fit ``model`` per channel; returns the JSON document (strict JSON) and the FitResults."""
-    doc: dict[str, Any] = {"model": model, "channels": {}}
+    # an isolated glitch (a corrupted frame, a probe's power-on reading) is a missing reading, not data
+    train, glitches_train = screen_glitches(train)
+    glitches: dict[str, Any] = {"training": glitches_train}
+    if validate is not None:
+        validate, glitches["validation"] = screen_glitches(validate)
+    doc: dict[str, Any] = {"model": model, "glitches_removed": glitches, "channels": {}}
     results = []
     for ch in channels:
         result = fit_model(model, train, ch, **opts)

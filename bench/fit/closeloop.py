@@ -50,6 +50,7 @@ from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, AT_FLOOR_RATIO, BLOCK_S,
                                         cv_gain_text, evidence_blocks, gates, lookalikes, search)
 from bench.fit.metrics import bias_stability, window_means, window_numbers
 from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
+from bench.fit.prep import screen_glitches
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
 from bench.signal import lstsq as signal_lstsq
@@ -880,6 +881,9 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
     """Run the close-loop analysis for each channel; returns the JSON-ready report (residual arrays
     for plotting are kept under the private key ``_residuals`` of each channel)."""
     check_lengths(train, validate)
+    # an isolated glitch (a corrupted frame, a probe's power-on reading) is a missing reading, not data
+    train, glitches_train = screen_glitches(train)
+    validate, glitches_validate = screen_glitches(validate)
     asked = bool(channels)
     channels = channels or train.gyro_channels()
     if latitude_deg is None and "latitude_deg" in train.meta:
@@ -889,6 +893,7 @@ def close_loop(train: Dataset, validate: Dataset, model: str, *, channels: list[
                                              "min_cv_gain": MIN_CV_GAIN, "max_effects": MAX_EFFECTS,
                                              "ambiguous_delta_bic": AMBIGUOUS_DBIC,
                                              "at_floor_ratio": AT_FLOOR_RATIO},
+                              "glitches_removed": {"training": glitches_train, "validation": glitches_validate},
                               "channels": {}}
     # an effect can only be confirmed on the validation run through probes it records
     recorded_in_both = tuple(p for p in train.temp_names() if _recorded(validate, f"temp_{p}"))

@@ -37,6 +37,11 @@ def render_close_loop_report(report: dict[str, Any], train: Dataset, validate: D
                              title: str = "Close-the-loop report") -> str:
     body = [f"<h1>{html.escape(title)}</h1>",
             f"<p>Declared model: <code>{html.escape(str(report['model']))}</code></p>"]
+    glitches = [(run, col, info["samples"], ", ".join(f"{t:g}" for t in info["time_s"]))
+                for run, cols in (report.get("glitches_removed") or {}).items() for col, info in cols.items()]
+    if glitches:
+        body.append(html_table(("run", "column", "samples", "first at (s)"), glitches,
+                               caption="isolated glitches set missing before the analysis"))
     for ch, r in report["channels"].items():
         body.append(f"<h2>Channel {html.escape(ch)}: {html.escape(r['verdict'])}</h2>")
         body.append(f"<p>{html.escape(r['findings'])}</p>")

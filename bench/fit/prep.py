@@ -18,6 +18,7 @@ Pure functions over numpy arrays / ``Dataset``; no I/O.  Sources:
 Public API::
 
     pauta_mask(x, *, time=None, window_s=None, n_sigma=3.0, max_iter=10) -> bool array (True = keep)
+    screen_glitches(ds) -> (Dataset with isolated glitches of gyro_* / freq_* / temp_* set missing, {column: found})
     block_average(ds, period_s=100.0, *, min_fraction=0.5) -> Dataset
     rate_c_per_min(time_s, temp_c, window_s=DEFAULT_RATE_WINDOW_S) -> array (C/min)
     add_rates(ds, window_s=DEFAULT_RATE_WINDOW_S, names=None) -> Dataset  (adds rate_<name> columns)
@@ -48,6 +49,7 @@ from bench.signal import (  # noqa: F401  (earth_rate_enu / orientation_axes: re
     earth_rate_body,
     earth_rate_body_per_sample,
     earth_rate_enu,
+    isolated_glitches,
     orientation_axes,
     run_segments,
     temperature_rate,
@@ -99,6 +101,54 @@ def pauta_mask(x: np.ndarray, *, time: np.ndarray | None = None, window_s: float
             break
         keep = new_keep
     return keep
+
+
+# the columns screened (gyro outputs, HRG resonance frequencies, probes), with the least deviation a
+# glitch must have there: a probe glued to a unit does not leave its course by a degree for one reading
+# (a DS18B20's power-on 85.0 C, a 127.94 C bus error), while its readings averaged over a logging
+# period leave it by 0.03 C at 8 robust sigmas
+GLITCH_MIN_DEVIATION = {"gyro_": 0.0, "freq_": 0.0, "temp_": 1.0}
+GLITCH_TIMES_REPORTED = 5
+
+
+# columns that set the conditions of a stretch of the record: where one changes, a new piece begins
+CONDITION_COLUMNS = ("orientation", "table_rate_dps", "power")
+
+
+def _condition_pieces(ds: Dataset) -> np.ndarray | None:
+    """A piece number per sample that steps wherever a ``CONDITION_COLUMNS`` column changes value."""
+    change = np.zeros(max(len(ds) - 1, 0), dtype=bool)
+    present = [c for c in CONDITION_COLUMNS if c in ds]
+    for name in present:
+        col = np.asarray(ds[name])
+        if col.dtype.kind in "fc":
+            a, b = col[1:], col[:-1]
+            change |= (a != b) & ~(np.isnan(a) & np.isnan(b))
+        else:
+            change |= col[1:].astype(str) != col[:-1].astype(str)
+    return np.concatenate([[0], np.cumsum(change)]) if present else None
+
+
+def screen_glitches(ds: Dataset) -> tuple[Dataset, dict[str, dict[str, object]]]:
+    """Isolated glitches (``bench.signal.isolated_glitches``: a corrupted gyro frame, a probe's 85.0 C
+    power-on reading) of every ``gyro_*``, ``freq_*`` and ``temp_*`` column set missing, as a failed
+    reading is; each stretch of steady conditions (a multi-position test's position, a turntable rate,
+    the power state: ``CONDITION_COLUMNS``) is judged on its own.  Returns the screened dataset and, per column that had any, ``{"samples": n, "time_s": [the first
+    few]}``; a dataset without glitches is returned as it is."""
+    found: dict[str, dict[str, object]] = {}
+    cols: dict[str, np.ndarray] = {}
+    labels = _condition_pieces(ds)
+    for name, col in ds.columns.items():
+        prefix = next((p for p in GLITCH_MIN_DEVIATION if name.startswith(p)), None)
+        if prefix is None:
+            continue
+        x = np.asarray(col, dtype=np.float64)
+        bad = isolated_glitches(ds.time, x, GLITCH_MIN_DEVIATION[prefix], labels)
+        if bad.any():
+            cols[name] = np.where(bad, np.nan, x)
+            found[name] = {"samples": int(bad.sum()),
+                           "time_s": [float(t) for t in ds.time[bad][:GLITCH_TIMES_REPORTED]]}
+    return (ds.with_columns(**cols) if cols else ds), found
 
 
 # ---------------------------------------------------------------------------------------- averaging

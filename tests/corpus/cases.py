@@ -7,7 +7,7 @@ an honest analysis may give, and the oracle regressors (see ``tests.corpus.effec
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import zlib
@@ -69,6 +69,14 @@ class Case:
     floors: dict[str, float]
     probe_nodes: dict[str, str]              # where each probe is glued (coil_x/y/z, base or case)
     full: dict[str, tuple[Dataset, Recording]]   # per run: the 1-s data and how the logger recorded it
+    # the TRAIN and VALIDATE runs as the logger delivered them to the product, when that differs from
+    # what it recorded (readings it wrote without checking them); the referee judges on the recorded runs
+    delivered: tuple[Dataset, Dataset] | None = None
+
+    @property
+    def product_runs(self) -> tuple[Dataset, Dataset]:
+        """The TRAIN and VALIDATE runs the product is given."""
+        return self.delivered if self.delivered is not None else (self.train, self.validate)
 
     def oracle_columns(self, channel: str, which: str) -> np.ndarray:
         """The true effects of ``channel`` as regressor columns on the TRAIN or VALIDATE data, from what
@@ -225,6 +233,34 @@ def _single(case_class: str, seed: int, kinds: list[str] | Callable, *, channel:
     raise RuntimeError(f"{case_class} seed {seed}: no draw with visible effects in {MAX_DRAWS} tries")
 
 
+def _with_glitches(case: Case) -> Case:
+    """The case as a logger that does not check its readings delivers it: in every gyro column of both
+    runs a few frames corrupted past their checksum (30-300x the column's sample-to-sample noise; one of
+    them three frames long), in every probe column one to three readings of a DS18B20's power-on
+    85.0 C, its 127.94 C bus error or a -127 C disconnect."""
+    rng = np.random.default_rng([zlib.crc32(b"glitches"), case.seed])
+
+    def deliver(ds: Dataset) -> Dataset:
+        cols = {}
+        for name in ds.columns:
+            x = np.array(ds[name], dtype=float)
+            ok = np.flatnonzero(np.isfinite(x))[30:-30]
+            if name.startswith("gyro_"):
+                noise = float(np.nanstd(np.diff(x))) / np.sqrt(2.0)
+                at = np.sort(rng.choice(ok, 4, replace=False))
+                at = np.concatenate([at, at[-1] + np.arange(1, 3)])     # the last one three frames long
+                x[at] += rng.choice([-1.0, 1.0], len(at)) * rng.uniform(30.0, 300.0, len(at)) * noise
+            elif name.startswith("temp_"):
+                at = rng.choice(ok, int(rng.integers(1, 4)), replace=False)
+                x[at] = rng.choice([85.0, 127.94, -127.0], len(at))
+            else:
+                continue
+            cols[name] = x
+        return ds.with_columns(**cols)
+
+    return replace(case, delivered=(deliver(case.train), deliver(case.validate)))
+
+
 LIBRARY_KINDS = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",
                  "g_sensitivity", "scale_factor_temperature", "time_drift")
 PAIRABLE = ("thermal_lag", "gradient", "rate", "rate_squared", "temp_rate_cross", "hysteresis", "warmup",
@@ -320,6 +356,8 @@ CLASSES: dict[str, Callable[[int], Case]] = {
     "two_probe_effects": lambda s: _single(
         "two_probe_effects", s, lambda rng: [str(k) for k in rng.choice(PROBE_KINDS, 2, replace=False)],
         ratio=(4.0, 8.0)),
+    # a real effect, and a logger that writes corrupted gyro frames and probe failure readings unchecked
+    "effect_with_glitches": lambda s: _with_glitches(_single("effect_with_glitches", s, _one_of(PAIRABLE, 14)(s))),
     # a bias step at a random time of each run, not driven by temperature: must come out unexplained
     "unrecorded_bias_step": lambda s: _single(
         "unrecorded_bias_step", s, [], verdicts=UNEXPLAINED, train_kw=dict(bias_step=True),
@@ -337,8 +375,9 @@ def write_case(case: Case, directory) -> dict:
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    write_csv(case.train, d / "train.csv")
-    write_csv(case.validate, d / "validate.csv")
+    train, validate = case.product_runs
+    write_csv(train, d / "train.csv")
+    write_csv(validate, d / "validate.csv")
     record = {"case_class": case.case_class, "seed": case.seed,
               "channels": {ch: t.describe() for ch, t in case.truth.items()}, "probe_nodes": case.probe_nodes,
               "noise_floor_dph": case.floors}

@@ -227,7 +227,8 @@ def run_product(case: Case, channel: str) -> dict[str, Any]:
     """Run the product's close-the-loop on the case for one channel with its declared formula."""
     from bench.fit.closeloop import close_loop
 
-    report = close_loop(case.train, case.validate, case.truth[channel].formula, channels=[channel])
+    train, validate = case.product_runs
+    report = close_loop(train, validate, case.truth[channel].formula, channels=[channel])
     return report["channels"][channel]
 
 
