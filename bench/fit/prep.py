@@ -133,8 +133,9 @@ def screen_glitches(ds: Dataset) -> tuple[Dataset, dict[str, dict[str, object]]]
     """Isolated glitches (``bench.signal.isolated_glitches``: a corrupted gyro frame, a probe's 85.0 C
     power-on reading) of every ``gyro_*``, ``freq_*`` and ``temp_*`` column set missing, as a failed
     reading is; each stretch of steady conditions (a multi-position test's position, a turntable rate,
-    the power state: ``CONDITION_COLUMNS``) is judged on its own.  Returns the screened dataset and, per column that had any, ``{"samples": n, "time_s": [the first
-    few]}``; a dataset without glitches is returned as it is."""
+    the power state: ``CONDITION_COLUMNS``) is judged on its own.  Returns the screened dataset and,
+    per column that had any, ``{"samples": n, "time_s": [the first few]}``; a dataset without
+    glitches is returned as it is."""
     found: dict[str, dict[str, object]] = {}
     cols: dict[str, np.ndarray] = {}
     labels = _condition_pieces(ds)

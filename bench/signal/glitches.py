@@ -4,15 +4,15 @@ DS18B20 reading its power-on 85.0 C or 127.94 C, a logger writing a stale or gar
 
 Method (a Hampel filter along the local line, with a motion allowance).  On each contiguous piece of
 the record (split at non-finite values, at gaps longer than ``GAP_PERIODS`` sample periods and where
-a label such as the orientation changes), every
-sample's deviation from the robust local line of the ``WINDOW`` samples around it (slope: their median
-first difference; level: their median carried to the sample along it; the first or last whole window
-within half a window of an end, so a glitch on a piece's first reading is found) is compared with two
-scales:
+a label such as the orientation changes), every sample's deviation from the robust local line of the
+``WINDOW`` samples around it (slope: their median first difference; level: their median carried to
+the sample along it; the first or last whole window within half a window of an end, so a glitch on a
+piece's first reading is found) is compared with two scales:
 
 * the noise: 1.4826 x the median absolute deviation from the running median of ``WINDOW`` samples,
-  the larger of the whole record's and the ``NOISE_WINDOW`` samples' around it (a noisier stretch is judged by its own noise), and at least half
-  the typical non-zero deviation (quantised data whose deviations are mostly exactly zero);
+  the larger of the whole record's and the ``NOISE_WINDOW`` samples' around it (a noisier stretch is
+  judged by its own noise), and at least half the typical non-zero deviation (quantised data whose
+  deviations are mostly exactly zero);
 * the motion: the median absolute first difference over the window (a sharp reversal of a fast ramp
   leaves its peak about 2.5 differences from the median; a spike leaves it by much more while most
   differences around it stay small).
@@ -21,10 +21,11 @@ A sample is a glitch when its deviation exceeds ``K_NOISE`` noise scales and ``K
 scales, when jumps of half its size are rare within ``NOISE_WINDOW`` samples around it (a signal that
 steps between a few levels, such as one derived from a quantised probe whose last bit toggles, makes
 them all the time), and when it exceeds a caller's minimum size (for a temperature, what no probe on
-a thermal mass does in one reading).  The local line follows ramps, steps and any locally monotone course, so bias steps,
-warm-ups and mode hops are not glitches; up to half a window of consecutive bad samples is found.
-Gaussian noise exceeds 10 sigma about once in 10^23 samples; DS18B20 readings averaged over a logging
-period, whose deviations are mostly exactly zero, reach 8 of their robust sigmas now and then.
+a thermal mass does in one reading).  The local line follows ramps, steps and any locally monotone
+course, so bias steps, warm-ups and mode hops are not glitches; up to half a window of consecutive bad
+samples is found.  Gaussian noise exceeds 10 sigma about once in 10^23 samples; DS18B20 readings
+averaged over a logging period, whose deviations are mostly exactly zero, reach 8 of their robust
+sigmas now and then.
 """
 from __future__ import annotations
 
