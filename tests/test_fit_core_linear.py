@@ -1,6 +1,10 @@
 """Least-squares engine and HAC / decimation helpers."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -68,3 +72,24 @@ def test_decimate_indices_one_per_window():
     idx = linear.decimate_indices(t, 100.0)
     assert len(idx) == 10 and np.all(np.diff(t[idx]) == 100.0)
     assert linear.bic(1.0, 100, 3) == pytest.approx(100 * np.log(0.01) + 3 * np.log(100))
+
+
+def test_blas_thread_limit_holds_inside_nests_and_restores_the_library_count():
+    # in a fresh process whose BLAS starts with two threads (the suite's own processes start with one)
+    code = """
+from threadpoolctl import threadpool_info
+from bench.signal.lstsq import blas_threads
+count = lambda: sorted({p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"})
+seen = [count()]
+with blas_threads():
+    seen.append(count())
+    with blas_threads():
+        seen.append(count())
+    seen.append(count())
+seen.append(count())
+print(seen)
+"""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2", "MKL_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[[2], [1], [1], [1], [2]]", out.stdout

@@ -15,6 +15,15 @@ def _inputs(time_s: np.ndarray, temp: np.ndarray) -> fx.Inputs:
                      since_on=time_s - time_s[0], power_known=False, up=None, input_rate=None)
 
 
+def test_rate_relay_latches_past_the_threshold_and_holds_through_missing_rates():
+    nan = np.nan
+    rate = np.array([0.0, 0.05, 0.1, 0.2, 0.05, nan, -0.1, -0.3, nan, 0.0, 0.15, -0.1])
+    got = fx.relay_state(rate, 0.1)          # exactly at the threshold does not switch
+    np.testing.assert_array_equal(got, [0, 0, 0, 1, 1, 1, 1, -1, -1, -1, 1, 1])
+    assert fx.relay_state(np.array([nan, nan]), 0.1).tolist() == [0.0, 0.0]
+    assert len(fx.relay_state(np.zeros(0), 0.1)) == 0
+
+
 def test_reversal_relay_switches_after_a_reversal_of_one_width():
     x = np.array([0.0, 1.0, 2.0, 4.0, 8.0, 10.0, 8.0, 7.5, 6.0, 2.0, 4.0, 6.0, 7.0])
     got = fx.reversal_relay_state(x, 3.0, -1.0)

@@ -367,12 +367,12 @@ class SearchProblem:
     def grid_ssr(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> float:
         """The family's lowest training SSR over its scan grid, ``others`` held: how well it could fill a
         place, before any refinement (the coarse ranking of swaps and exchanges)."""
-        return min(self.ssr_each(others, [family.at(v) for v in (family.grid or (None,))]))
+        return min(self.ssr_each(others, list(family.grid_effects)))
 
     def grid_bic(self, family: fx.Family, others: tuple[fx.Effect, ...], n_eff: float) -> float:
         """The family's lowest training BIC over its scan grid, ``others`` held (the coarse pass of a
         re-fit over a kind's probes, pairs and forms)."""
-        cands = [family.at(v) for v in (family.grid or (None,))]
+        cands = list(family.grid_effects)
         # one family: the same columns and penalty at every grid value, so the lowest BIC is at the lowest SSR
         return self.bic(others + (cands[0],), n_eff, min(self.ssr_each(others, cands)))
 
@@ -381,7 +381,7 @@ class SearchProblem:
             eff = family.at(None)
             return eff, self.ssr(others + (eff,))
         grid = list(family.grid)
-        costs = self.ssr_each(others, [family.at(v) for v in grid])
+        costs = self.ssr_each(others, list(family.grid_effects))
         i = int(np.argmin(costs))
         low, high = family.bounds
         lo = np.log(grid[i - 1] if i > 0 else min(low, grid[0]))
@@ -390,7 +390,7 @@ class SearchProblem:
                               bounds=(lo, hi), method="bounded", options={"xatol": 0.03})
         if np.isfinite(res.fun) and res.fun < costs[i]:
             return family.at(float(np.exp(res.x))), float(res.fun)
-        return family.at(grid[i]), float(costs[i])
+        return family.grid_effects[i], float(costs[i])
 
     def refit_jointly(self, effects: tuple[fx.Effect, ...]) -> tuple[fx.Effect, ...]:
         """Joint re-fit of every added effect's nonlinear parameters (a memory's delay included), then

@@ -305,6 +305,12 @@ class Family:
     def at(self, value: float | None) -> "Effect":
         return Effect(self, None if value is None else float(value))
 
+    @cached_property
+    def grid_effects(self) -> tuple["Effect", ...]:
+        """The effect at each value of the scan grid (a family without a parameter: its one effect),
+        made once: the search scans a family's grid thousands of times, and an effect keeps its label."""
+        return tuple(self.at(v) for v in self.grid) if self.grid else (self.at(None),)
+
 
 @dataclass(frozen=True)
 class Effect:
@@ -430,12 +436,11 @@ def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
     """+1 after heating faster than threshold, -1 after cooling faster than it; holds in between."""
-    on = np.where(rate > threshold, 1.0, np.where(rate < -threshold, -1.0, np.nan))
-    idx = np.where(~np.isnan(on), np.arange(len(on)), 0)
-    np.maximum.accumulate(idx, out=idx)
-    state = on[idx]
-    state[np.isnan(state)] = 0.0
-    return state
+    rate = np.asarray(rate, dtype=np.float64)
+    switched = np.abs(rate) > threshold           # NaN never switches: the state holds through it
+    idx = np.where(switched, np.arange(len(rate)), 0)
+    np.maximum.accumulate(idx, out=idx)           # the last switching sample up to each one
+    return np.where(switched[idx], np.sign(rate[idx]), 0.0)
 
 
 def duhem_state(rate_c_per_min_: np.ndarray, time_s: np.ndarray, width_c: float, start: float = 0.0) -> np.ndarray:

