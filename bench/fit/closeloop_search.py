@@ -30,7 +30,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from itertools import combinations
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -203,7 +203,7 @@ class SearchProblem:
             got = self._ssrs[key] = self._ssr(effects)
         return got
 
-    def ssr_each(self, others: tuple[fx.Effect, ...], candidates: list[fx.Effect]) -> list[float]:
+    def ssr_each(self, others: tuple[fx.Effect, ...], candidates: Sequence[fx.Effect]) -> list[float]:
         """``ssr(others + (c,))`` for each candidate c, the candidates not yet kept projected together
         (one product with the design's basis for all of them: a scan over a grid or a kind's families)."""
         head = tuple(e.label for e in others)
@@ -367,12 +367,12 @@ class SearchProblem:
     def grid_ssr(self, family: fx.Family, others: tuple[fx.Effect, ...]) -> float:
         """The family's lowest training SSR over its scan grid, ``others`` held: how well it could fill a
         place, before any refinement (the coarse ranking of swaps and exchanges)."""
-        return min(self.ssr_each(others, list(family.grid_effects)))
+        return min(self.ssr_each(others, family.grid_effects))
 
     def grid_bic(self, family: fx.Family, others: tuple[fx.Effect, ...], n_eff: float) -> float:
         """The family's lowest training BIC over its scan grid, ``others`` held (the coarse pass of a
         re-fit over a kind's probes, pairs and forms)."""
-        cands = list(family.grid_effects)
+        cands = family.grid_effects
         # one family: the same columns and penalty at every grid value, so the lowest BIC is at the lowest SSR
         return self.bic(others + (cands[0],), n_eff, min(self.ssr_each(others, cands)))
 
@@ -381,7 +381,7 @@ class SearchProblem:
             eff = family.at(None)
             return eff, self.ssr(others + (eff,))
         grid = list(family.grid)
-        costs = self.ssr_each(others, list(family.grid_effects))
+        costs = self.ssr_each(others, family.grid_effects)
         i = int(np.argmin(costs))
         low, high = family.bounds
         lo = np.log(grid[i - 1] if i > 0 else min(low, grid[0]))

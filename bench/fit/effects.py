@@ -435,7 +435,8 @@ def rate_c_per_min(temp: np.ndarray, time_s: np.ndarray, window_s: float = 300.0
 
 
 def relay_state(rate: np.ndarray, threshold: float) -> np.ndarray:
-    """+1 after heating faster than threshold, -1 after cooling faster than it; holds in between."""
+    """+1 after heating faster than threshold, -1 after cooling faster than it; holds in between
+    (``threshold`` >= 0, as every relay family's scan grid and bounds are)."""
     rate = np.asarray(rate, dtype=np.float64)
     switched = np.abs(rate) > threshold           # NaN never switches: the state holds through it
     idx = np.where(switched, np.arange(len(rate)), 0)
