@@ -88,6 +88,9 @@ def test_a_parameter_beyond_the_end_of_the_scan_grid_is_still_found():
     assert all(f.bounds[1] == pytest.approx(2.0 * span) for f in capped)
     assert all(max(f.grid) <= f.bounds[1] for f in capped) and 14400.0 in capped[0].grid
     assert all(f.bounds[1] == fx.LAG_LIMITS_S[1] for f in lags if settled(f))      # 11.1 h: the cap is not reached
+    # where the record's length sets the limit, a lag wanting it is no lag (``open_end``); where the
+    # grid's own limit binds, it is a long lag
+    assert all(f.open_above for f in capped) and not any(f.open_above for f in lags if settled(f))
     # the unsettled form (this probe ramps at the run's start) only where its start offset decays in the run
     unsettled = [f for f in fx.families(ctx, short) if f.kind == "thermal_lag" and not settled(f)]
     assert unsettled and all(f.bounds[1] == pytest.approx(span / fx.LAG_START_SPANS) for f in unsettled)
@@ -138,6 +141,25 @@ def test_a_gradual_memory_the_data_want_wider_than_half_the_span_is_no_candidate
     inside = _problem(fine, 0.5 * fx.duhem_memory(fine.path("t1", 0.0), 3.0), [family])
     eff, cost = inside.best_value(family, ())
     assert eff.value == pytest.approx(3.0, rel=0.1) and np.isfinite(cost) and not family.open_end(eff.value)
+
+
+def test_a_lag_the_data_want_at_twice_the_record_is_no_candidate():
+    # a 3-h run that starts at its warmest and stays below: the running integral of the temperature is
+    # about linear in time, so a time drift is fitted by a lag as slow as the family allows (twice the
+    # record), which is not a time constant the run tells.  A lag inside the range is found as it is
+    t = np.arange(5.0, 10_800.0, FINE_S)
+    temp = np.interp(t, [0, 1500, 4000, 6500, 9000, 10_800], [50, 48, 20, 35, 15, 30])
+    fine = _inputs(t, temp)
+    ctx = fx.Context(channel="x", primary_probe="t1", probes=("t1",), channels=("x",), latitude_deg=None)
+    lag = next(f for f in fx.families(ctx, fine) if f.kind == "thermal_lag" and not dict(f.fixed).get("form")
+               and not dict(f.fixed).get("initial"))
+    drift = _problem(fine, 0.2 * (t - t[0]) / 3600.0, [lag])
+    eff, cost = drift.best_value(lag, ())
+    assert lag.open_end(eff.value) and cost == float("inf")
+    tau = 1800.0
+    inside = _problem(fine, 0.05 * (fx.first_order_lag(temp, t, tau) - temp), [lag])
+    eff, cost = inside.best_value(lag, ())
+    assert eff.value == pytest.approx(tau, rel=0.05) and np.isfinite(cost) and not lag.open_end(eff.value)
 
 
 def test_a_relay_threshold_the_training_run_pins_only_to_an_interval_is_taken_at_its_middle():

@@ -63,7 +63,9 @@ LAG_TAUS_S = (60.0, 120.0, 240.0, 480.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0,
 LAG_LIMITS_S = (LAG_TAUS_S[0], 2.0 * LAG_TAUS_S[-1])
 # a lag far slower than the record is within it the running integral of the temperature (a drift that
 # follows the temperature history), not a time constant the data can tell: searched up to this many
-# times the training run's length
+# times the training run's length, and an optimum at that limit is not a lag (``Family.open_end``: on a
+# run that starts at its warmest the integral is about linear in time, and such a lag had taken a time
+# drift's place on TRAIN and then not generalised)
 LAG_MAX_RUNS = 2.0
 # a lagged element's state at a run's first row is history nothing recorded (the unit may have soaked
 # elsewhere, or logging began mid-ramp): it starts where the probe's first reading puts it, off by an
@@ -247,7 +249,8 @@ class Family:
     stepwise: bool = False
     # the parameter's upper limit is where the effect stops being itself: a gradual memory as wide as
     # half the probe's span never saturates within the run, and its fit there is a drift along the
-    # temperature's travel, not a hysteresis.  An optimum at that end is not this effect (``open_end``)
+    # temperature's travel, not a hysteresis; a lag as slow as twice the record is the temperature's
+    # running integral, a drift.  An optimum at that end is not this effect (``open_end``)
     open_above: bool = False
     # the simpler form of this effect (its kind and ``fixed``): its columns, with the declared model's,
     # lie within this one's (the cross term holds the rate), or this one is a particular case of it
@@ -760,6 +763,9 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     lag_limits = (LAG_LIMITS_S[0], max(LAG_LIMITS_S[0], min(LAG_LIMITS_S[1], LAG_MAX_RUNS * duration)))
     lag_taus = tuple(t for t in LAG_TAUS_S if t <= lag_limits[1]) or LAG_TAUS_S[:1]
+    # where the run's length sets the lag's upper limit, a time constant there is the running integral
+    # of the temperature, not a lag the run tells: an optimum at that end is not this effect
+    lag_open = LAG_MAX_RUNS * duration < LAG_LIMITS_S[1]
     ramping = {p for p in probes if abs(start_rate(inputs, p)) >= UNSETTLED_START_C_PER_MIN}
     unsettled_limits = (lag_limits[0], min(lag_limits[1], duration / LAG_START_SPANS))
     unsettled_taus = tuple(t for t in lag_taus if t <= unsettled_limits[1])
@@ -769,7 +775,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             v = first_order_lag(x.temps[p], x.time, tau)
             return {f"lag{tau:.0f}({p})-{p}": v - x.temps[p]}
         out.append(Family("thermal_lag", (("probe", p),), lag_linear, "tau_s", lag_taus, chosen_probe=p != own,
-                          limits=lag_limits))
+                          limits=lag_limits, open_above=lag_open))
 
         def lag_unsettled(x: Inputs, tau, p=p, linear=lag_linear):
             # the same element away from the probe's first reading when the training run began (it had
@@ -793,7 +799,7 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             abs_limits = (ABSOLUTE_LAG_MIN_S, max(ABSOLUTE_LAG_MIN_S, lag_limits[1]))
             out.append(Family("thermal_lag", (("probe", p), ("form", "absolute")), lag_absolute, "tau_s",
                               tuple(t for t in lag_taus if t >= ABSOLUTE_LAG_MIN_S) or (ABSOLUTE_LAG_MIN_S,),
-                              limits=abs_limits))
+                              limits=abs_limits, open_above=lag_open))
     shape = tuple(float(c) for c in ctx.own_shape)
     if own in probes and any(c != 0.0 for c in shape[1:]):
         def lag_shape(x: Inputs, tau, p=own, c=shape):
@@ -807,7 +813,8 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
             return {f"f(lag{tau:.0f}({p}))-f({p})": x.own_rate(("lag shape", p, round(float(tau), 3)), column)}
         # a more particular form of the linear lag of the own probe, taken over it only on strong evidence
         out.append(Family("thermal_lag", (("probe", own), ("form", "polynomial")), lag_shape, "tau_s", lag_taus,
-                          chosen_probe=False, limits=lag_limits, nests=("thermal_lag", (("probe", own),))))
+                          chosen_probe=False, limits=lag_limits, open_above=lag_open,
+                          nests=("thermal_lag", (("probe", own),))))
 
     for a, b in combinations(probes, 2):
         out.append(Family("gradient", (("probes", f"{a}-{b}"),),
