@@ -763,9 +763,10 @@ def families(ctx: Context, inputs: Inputs) -> list[Family]:
     duration = float(inputs.time[-1] - inputs.time[0]) if len(inputs) > 1 else 0.0
     lag_limits = (LAG_LIMITS_S[0], max(LAG_LIMITS_S[0], min(LAG_LIMITS_S[1], LAG_MAX_RUNS * duration)))
     lag_taus = tuple(t for t in LAG_TAUS_S if t <= lag_limits[1]) or LAG_TAUS_S[:1]
-    # where the run's length sets the lag's upper limit, a time constant there is the running integral
-    # of the temperature, not a lag the run tells: an optimum at that end is not this effect
-    lag_open = LAG_MAX_RUNS * duration < LAG_LIMITS_S[1]
+    # where the run's length sets the lag's upper limit (below the grid's own), a time constant there is
+    # the running integral of the temperature, not a lag the run tells: an optimum at that end is not
+    # this effect
+    lag_open = lag_limits[1] < LAG_LIMITS_S[1]
     ramping = {p for p in probes if abs(start_rate(inputs, p)) >= UNSETTLED_START_C_PER_MIN}
     unsettled_limits = (lag_limits[0], min(lag_limits[1], duration / LAG_START_SPANS))
     unsettled_taus = tuple(t for t in lag_taus if t <= unsettled_limits[1])
