@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from bench.fit.effects import duhem_state, first_order_lag, sample_period
-from bench.fit.noisefloor import (_structure_ratio, block_means_edf, coefficient_spread, contiguous_pieces,
-                                  fit_noise_model)
+from bench.fit.noisefloor import (_structure_ratio, block_covariance, block_means_edf, coefficient_spread,
+                                  contiguous_pieces, fit_noise_model, realised_scale)
 from bench.signal import linear_recurrence
 
 
@@ -253,3 +253,28 @@ def test_a_slow_structure_that_hides_the_noise_level_is_never_called_noise():
         assert std > 3 * floor["noise_floor_dph"]
         called_noise.append(at_floor(std, floor))
     assert not any(called_noise), called_noise
+
+
+def test_a_noise_model_claims_no_more_variance_over_a_span_than_its_residual_realises():
+    # the residual's Allan variance at short taus read as a rate random walk carried over a long span
+    # claims a large variance of its block means; over the blocks that realise less, its level is
+    # brought down to theirs, and a model the blocks agree with (or exceed) is left as it is
+    from bench.fit.metrics import window_means
+
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 40_000.0, 1.0)
+    white = rng.normal(0, 0.2, t.size)
+    model = fit_noise_model([(white + np.cumsum(rng.normal(0, 0.002, t.size)), 1.0, t)])
+    assert model.summary()["rate_random_walk_dph_per_rt_s"] > 0
+    idx = np.arange(400)
+    g = block_covariance(model, idx, mus=(-2.0, -1.0, 0.0, 1.0))
+    a = np.eye(len(idx)) - 1.0 / len(idx)
+    expected = np.trace(a @ g @ a) / (len(idx) - 1)
+    quiet = window_means(t, white, 100.0)
+    scale = realised_scale(g, quiet)
+    assert scale == pytest.approx(np.var(quiet, ddof=1) / expected) and scale < 0.5
+    # the scaled model's expected variance is what the blocks hold
+    assert np.trace(a @ (scale * g) @ a) / (len(idx) - 1) == pytest.approx(np.var(quiet, ddof=1))
+    loud = quiet + np.linspace(-1.0, 1.0, len(quiet))
+    assert np.var(loud, ddof=1) > expected and realised_scale(g, loud) == 1.0
+    assert realised_scale(g, quiet[:1]) == 1.0

@@ -98,6 +98,11 @@ SCORED = [
         strict=True, reason="y's lag of t1 is named on its own probe t2: the training run puts lag(t2) "
                             "4.6 ahead in BIC (named in ambiguous_with); after 1.37x the oracle, "
                             "explained; z's lag of t1 is found (measured)")),
+    # z: a relay of t3 chosen on TRAIN took the in-range validation error from 0.760 to 0.208 deg/h
+    # (the oracle's 0.232), but its skill z was 1.23 and nothing was added: the noise model fitted to
+    # the validation residual with the relay carried a random-walk term over the run that claimed far
+    # more variance than that residual holds; its level is bounded by the residual now
+    pytest.param("hysteresis_relay_rate", 105, id="hysteresis_relay_rate-105"),
 ]
 
 

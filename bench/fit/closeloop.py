@@ -49,7 +49,8 @@ from bench.fit.base import Dataset
 from bench.fit.closeloop_search import (AMBIGUOUS_DBIC, AT_FLOOR_RATIO, BLOCK_S, DBIC_MIN, FINE_S, MAX_EFFECTS, MIN_CV_GAIN, P_MAX, SearchProblem,
                                         cv_gain_text, evidence_blocks, gates, lookalikes, search)
 from bench.fit.metrics import bias_stability, window_means, window_numbers
-from bench.fit.noisefloor import LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model
+from bench.fit.noisefloor import (LIMIT_P, WHITE_MUS, block_covariance, coefficient_spread, fit_noise_model,
+                                  realised_scale)
 from bench.fit.prep import screen_glitches
 from bench.fit.validity import in_range_mask, outside_summary, range_aware_errors, whole_blocks
 from bench.signal import block_means, ljung_box, ols_hac
@@ -391,8 +392,11 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         run's start, is what is judged); the lags' start offsets are taken out of both r and d alike, or
         with ``lag_starts_fitted`` estimated for each set on its own.  With ``slow_noise`` d'Gd is the
         larger of that and its value under the noise model of the in-range validation residual with
-        ``effs``, its slow wander (``SLOW_NOISE_MUS``) included.  NaN when fewer than three blocks are
-        judged."""
+        ``effs``, its slow wander (``SLOW_NOISE_MUS``) included, that model's level bounded by what the
+        residual realises over the judged blocks (``realised_scale``: measured, a random-walk term read
+        at taus up to 1024 s claimed a std of 100-s means of 0.522 deg/h over 104 blocks whose residual
+        holds 0.149, and a warm-up that took the validation error from 0.625 to 0.149 deg/h scored skill
+        z 1.99).  NaN when fewer than three blocks are judged."""
         r_without = fit(tuple(k for k in effs if k is not e), lag_starts_fitted=lag_starts_fitted)[2]
         d = r_without - fit(effs, lag_starts_fitted=lag_starts_fitted)[2]
         if not lag_starts_fitted:
@@ -410,7 +414,10 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
         if slow_noise:
             slow = validation_noise(tuple(effs), lag_starts_fitted)
             if slow is not None:
-                spread = max(spread, float(db @ block_covariance(slow, blocks, mus=SLOW_NOISE_MUS) @ db))
+                g = block_covariance(slow, blocks, mus=SLOW_NOISE_MUS)
+                # what the residual with ``effs`` realises over these blocks bounds its noise's level
+                with_e = window_means(t_va, np.where(ok, r_without - d, np.nan), BLOCK_S)
+                spread = max(spread, float(db @ g @ db) * realised_scale(g, with_e))
         return (float(rb @ db / dd), float(np.sqrt(spread) / dd)) if dd > 0 and spread > 0 else (float("nan"), float("nan"))
 
     def validation_skill(effs, e) -> float:

@@ -351,6 +351,22 @@ def block_covariance(model: NoiseModel, block_index: np.ndarray, block_s: float 
     return per_lag[lags]
 
 
+def realised_scale(g: np.ndarray, means: np.ndarray) -> float:
+    """The factor (at most 1) that brings the generalised covariance ``g`` of block means down to the
+    sample variance the block means ``means`` themselves realise: that variance over its expectation
+    under ``g``, tr(A g A) / (M - 1) with A the centring matrix, when the expectation is the larger, else
+    1.  A noise model fitted to a residual at short taus and carried over a long span (a random-walk
+    term read from taus up to ~1000 s) can claim more variance over the span than the residual holds;
+    the realised variance bounds what its noise can put there."""
+    m = len(means)
+    if m < 2:
+        return 1.0
+    a = np.eye(m) - 1.0 / m
+    expected = float(np.trace(a @ g @ a)) / (m - 1)
+    realised = float(np.var(means, ddof=1))
+    return realised / expected if expected > realised > 0 else 1.0
+
+
 def gls_whitener(g: np.ndarray) -> np.ndarray:
     """Lower Cholesky factor L of a proper covariance with the contrasts of the generalised covariance
     ``g`` (g + c 11', c = 2 max|g|: nonnegative, convex and decreasing in the lag, hence positive
