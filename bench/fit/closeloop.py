@@ -415,9 +415,8 @@ def close_loop_channel(design: Design, y_train: np.ndarray, y_val: np.ndarray, t
             slow = validation_noise(tuple(effs), lag_starts_fitted)
             if slow is not None:
                 g = block_covariance(slow, blocks, mus=SLOW_NOISE_MUS)
-                # what the residual with ``effs`` realises over these blocks bounds its noise's level
-                with_e = window_means(t_va, np.where(ok, r_without - d, np.nan), BLOCK_S)
-                spread = max(spread, float(db @ g @ db) * realised_scale(g, with_e))
+                # what the residual with ``effs`` (rb - db) realises over these blocks bounds its noise's level
+                spread = max(spread, float(db @ g @ db) * realised_scale(g, rb - db))
         return (float(rb @ db / dd), float(np.sqrt(spread) / dd)) if dd > 0 and spread > 0 else (float("nan"), float("nan"))
 
     def validation_skill(effs, e) -> float:

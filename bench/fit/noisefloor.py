@@ -361,8 +361,7 @@ def realised_scale(g: np.ndarray, means: np.ndarray) -> float:
     m = len(means)
     if m < 2:
         return 1.0
-    a = np.eye(m) - 1.0 / m
-    expected = float(np.trace(a @ g @ a)) / (m - 1)
+    expected = float(np.trace(centred(g))) / (m - 1)
     realised = float(np.var(means, ddof=1))
     return realised / expected if expected > realised > 0 else 1.0
 
